@@ -1,0 +1,3 @@
+//! Run configuration: schema, resolution and validation.
+mod schema;
+pub use schema::*;

@@ -1,0 +1,492 @@
+//! The run configuration: every option of `shared/spec/RFCL.md` sections 2-8 plus the service's
+//! own. Option names follow the reference implementation where the spec names them (`num_qs`,
+//! `grad_updates_per_step`, `reverse_step_size`, ...) so researchers recognise them; `Default` is the
+//! reference behaviour. See `docs/CONFIG.md` for the reference of every key and the deliberate
+//! deviations.
+use serde::{Deserialize, Serialize};
+
+/// A fully resolved run configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunConfig {
+    /// Run name; the run directory is `runs/<name>` unless given.
+    pub name: String,
+    /// Experiment seed: curricula, network init, actors' env seeds derive from it.
+    pub seed: u64,
+    /// Seed for demo selection (spec 6.1); `None` uses `seed`.
+    pub demo_seed: Option<u64>,
+    pub env: EnvConfig,
+    pub eval_env: EvalEnvConfig,
+    pub sac: SacConfig,
+    pub network: NetworkConfig,
+    pub train: TrainConfig,
+    pub reverse: ReverseConfig,
+    pub forward: ForwardConfig,
+    pub service: ServiceConfig,
+}
+
+/// Which simulator family runs the env.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Suite {
+    /// The native Rust PointMaze (spec 7.5).
+    Pointmaze,
+    /// ManiSkill3 on the CPU backend (spec 7.1).
+    Maniskill3,
+    /// MetaWorld (spec 7.3).
+    Metaworld,
+    /// Adroit from gymnasium-robotics (spec 7.4).
+    Adroit,
+}
+
+/// The training env (spec 7, 8.1).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EnvConfig {
+    pub env_id: String,
+    pub suite: Suite,
+    /// Env horizon H; the stage-1 dynamic limit is applied on top of it.
+    pub max_episode_steps: u32,
+    /// Train envs in total, over all actors (the reference's 8).
+    pub num_envs: u32,
+    /// Controller (ManiSkill: `pd_joint_delta_pos`); `None` = the suite's default.
+    pub control_mode: Option<String>,
+    /// Extra keyword arguments for the simulator's constructor.
+    pub env_kwargs: serde_json::Map<String, serde_json::Value>,
+    /// Expected observation / action dims; checked against demos and the env when set.
+    pub obs_dim: Option<u32>,
+    pub action_dim: Option<u32>,
+}
+
+/// The evaluation env (spec 5.7).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EvalEnvConfig {
+    pub num_envs: u32,
+    /// `None` = the training env's horizon.
+    pub max_episode_steps: Option<u32>,
+    /// Eval seeds start here (held out from the forward curriculum's levels).
+    pub seed_offset: u64,
+}
+
+/// Where the SAC maths run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Device {
+    Cpu,
+    Cuda,
+}
+
+/// Matmul precision of the learner. `fp32` is exact; `bf16` trades precision for speed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MatmulPrecision {
+    Fp32,
+    Bf16,
+}
+
+/// How learner updates and env steps are paced (ARCHITECTURE "UTD modes").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum UtdMode {
+    /// Critic updates per received env step held at the configured ratio (reference behaviour).
+    Sync,
+    /// Actors and learner run flat out; the achieved ratio is reported.
+    Async,
+}
+
+/// SAC with a Q-ensemble (spec 5, 8.1, 8.2).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SacConfig {
+    /// Uniform-random steps at the start of stage 1; policy-only, update-free steps at the start of
+    /// stage 2 (spec 4.4, 5.4).
+    pub num_seed_steps: u64,
+    pub replay_buffer_capacity: u64,
+    pub batch_size: u32,
+    /// Env steps per env per training iteration (1 sample-efficient, 4 fast).
+    pub steps_per_env: u32,
+    /// G: critic updates per iteration (spec 5.2).
+    pub grad_updates_per_step: u32,
+    /// F: critic updates per actor update (spec 5.2).
+    pub actor_update_freq: u32,
+    /// Critic members trained (deviation 2; the reference always trains 10).
+    pub critic_ensemble: u32,
+    /// Members the target may draw from, {0..target_pool-1}: the reference's `num_qs`.
+    #[serde(alias = "num_qs")]
+    pub target_pool: u32,
+    /// Members drawn (without replacement) for the target minimum.
+    pub num_min_qs: u32,
+    /// Discount gamma.
+    pub discount: f64,
+    /// Polyak rate of the target critic.
+    pub tau: f64,
+    /// Subtract the entropy term in the target (false in every reference config).
+    pub backup_entropy: bool,
+    pub learnable_temp: bool,
+    pub initial_temperature: f64,
+    /// `None` = -A/2 (spec 5.3).
+    pub target_entropy: Option<f64>,
+    pub actor_lr: f64,
+    pub critic_lr: f64,
+    pub temp_lr: f64,
+    pub adam_beta1: f64,
+    pub adam_beta2: f64,
+    pub adam_eps: f64,
+    pub eval_freq: u64,
+    pub eval_steps: u64,
+    pub log_freq: u64,
+    pub save_freq: u64,
+    pub utd_mode: UtdMode,
+    pub device: Device,
+    pub matmul_precision: MatmulPrecision,
+}
+
+/// MLP shapes (spec 5.1).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NetworkConfig {
+    pub actor_features: Vec<u32>,
+    pub critic_features: Vec<u32>,
+    /// LayerNorm before ReLU in every critic hidden layer.
+    pub critic_layer_norm: bool,
+    pub layer_norm_eps: f64,
+    pub log_std_min: f64,
+    pub log_std_max: f64,
+}
+
+/// Budget, demos and stage options (spec 4, 6).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Total env-step budget over both stages.
+    pub steps: u64,
+    /// Demo file (ManiSkill trajectory HDF5 + JSON sidecar); relative to the config file.
+    pub dataset_path: Option<String>,
+    pub num_demos: u32,
+    pub shuffle_demos: bool,
+    /// Rescale demo actions into agent units (spec 6.4, deviation 1); `None` = off.
+    pub data_action_scale: Option<f64>,
+    pub train_on_demo_actions: bool,
+    pub load_actor: bool,
+    pub load_critic: bool,
+    pub load_as_offline_buffer: bool,
+    pub load_as_online_buffer: bool,
+    /// Evaluate on the true task distribution during stage 1 (spec 2.9).
+    pub use_orig_env_for_eval: bool,
+    pub eval_start_of_demos: bool,
+    /// Skip stage 1 and keep the demos as the offline buffer ("forward-only").
+    pub stage_2_only: bool,
+    /// Stop after stage 1.
+    pub stage_1_only: bool,
+}
+
+/// Per-demo or global advance rule (spec 2.6).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CurriculumMethod {
+    PerDemo,
+    Global,
+}
+
+/// Start-step samplers (spec 2.3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StartStepSampler {
+    Geometric,
+    FixedPoint,
+    Uniform,
+    UniformSpike,
+    UniformStep,
+}
+
+/// Dynamic time limit formula (spec 2.5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TimeLimitFormula {
+    /// offset + floor((S_i - s) / phi).
+    Reference,
+    /// 1 + (T_i - s) / phi, as the paper writes it.
+    Paper,
+}
+
+/// Stage 1: the per-demo reverse curriculum (spec 2). Defaults are the reference's constants.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReverseConfig {
+    pub curriculum_method: CurriculumMethod,
+    pub start_step_sampler: StartStepSampler,
+    /// Probabilities of offsets 0..k-1 of the truncated geometric sampler.
+    pub geometric_probs: Vec<f64>,
+    /// delta: how far t_i moves back on an advance.
+    pub reverse_step_size: u32,
+    /// m: the per-demo success FIFO length.
+    pub per_demo_buffer_size: u32,
+    /// phi; <= 0 disables the dynamic time limit.
+    pub demo_horizon_to_max_steps_ratio: f64,
+    pub time_limit: TimeLimitFormula,
+    /// The reference's +16.
+    pub time_limit_offset: u32,
+    /// Weight of a demo whose t_i = 0 (the reference's 1e-6).
+    pub solved_demo_weight: f64,
+    /// Stage 1 ends when the solved fraction is strictly greater than this (0.9).
+    pub solved_frac_threshold: f64,
+    /// Mean of the global history FIFO that advances every demo (`global` method).
+    pub global_success_threshold: f64,
+    /// Trailing success states kept for resets (light truncation, spec 2.1).
+    pub max_trailing_success_states: u32,
+}
+
+/// Score function of the forward curriculum (spec 3.3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ForwardScore {
+    SuccessOnceScore,
+}
+
+/// Rank transforms (spec 3.4).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ScoreTransform {
+    Rankmin,
+    Rank,
+    Constant,
+    Identity,
+    Power,
+    Softmax,
+}
+
+/// How P_S and P_C combine (spec 3.5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LevelMix {
+    /// (1 - c) P_S + c P_C, both rank-transformed.
+    Reference,
+    /// P_S + P_C with the paper's linear staleness, renormalised.
+    Paper,
+}
+
+/// Stage 2: the seed-based forward curriculum (spec 3). Defaults are the reference's constants.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ForwardConfig {
+    pub forward_curriculum: ForwardScore,
+    /// Levels are seeds 0..num_seeds-1.
+    pub num_seeds: u32,
+    pub score_transform: ScoreTransform,
+    pub score_temperature: f64,
+    pub staleness_transform: ScoreTransform,
+    pub staleness_temperature: f64,
+    pub staleness_coef: f64,
+    pub mix: LevelMix,
+    /// k: the last k returns feed the score.
+    pub score_window: u32,
+    /// omega: success fraction at or above which a level scores as easy.
+    pub score_threshold: f64,
+    /// Length of each level's returns FIFO.
+    pub returns_buffer_size: u32,
+    /// Score of a level before any report.
+    pub initial_score: f64,
+    /// Add the demos' initial states as levels (deviation 3).
+    pub include_demo_starts: bool,
+}
+
+/// The service's own options: processes, transport, pacing, persistence.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServiceConfig {
+    /// Train actor processes; `env.num_envs` is split over them.
+    pub num_actors: u32,
+    /// Eval actor processes.
+    pub num_eval_actors: u32,
+    /// `auto` (shm on the learner's host, gRPC elsewhere), `shm` or `grpc`.
+    pub transport: Transport,
+    /// Seconds after which an unreported lease expires.
+    pub lease_timeout_s: f64,
+    /// Curriculum snapshot every this many reports (and on shutdown).
+    pub snapshot_every_reports: u64,
+    /// Transitions per shared-memory / gRPC batch.
+    pub transition_batch: u32,
+    /// Warn when an actor's policy lags the learner's by more than this many versions.
+    pub max_policy_lag: u64,
+    pub curriculum_port: u16,
+    pub learner_port: u16,
+    pub dashboard_port: u16,
+    /// Stop training when the running mean of the last 5 evals reaches this success rate
+    /// (`None` = use the whole budget).
+    pub stop_at_eval_success: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Transport {
+    Auto,
+    Shm,
+    Grpc,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        Self {
+            name: "run".into(),
+            seed: 0,
+            demo_seed: None,
+            env: EnvConfig::default(),
+            eval_env: EvalEnvConfig::default(),
+            sac: SacConfig::default(),
+            network: NetworkConfig::default(),
+            train: TrainConfig::default(),
+            reverse: ReverseConfig::default(),
+            forward: ForwardConfig::default(),
+            service: ServiceConfig::default(),
+        }
+    }
+}
+
+impl Default for EnvConfig {
+    fn default() -> Self {
+        Self {
+            env_id: "PointMaze-v0".into(),
+            suite: Suite::Pointmaze,
+            max_episode_steps: 300,
+            num_envs: 8,
+            control_mode: None,
+            env_kwargs: serde_json::Map::new(),
+            obs_dim: None,
+            action_dim: None,
+        }
+    }
+}
+
+impl Default for EvalEnvConfig {
+    fn default() -> Self {
+        Self { num_envs: 2, max_episode_steps: None, seed_offset: 1_000_000 }
+    }
+}
+
+impl Default for SacConfig {
+    /// The wall-time-efficient ("fast") set of spec 8.2 with the shared values of 8.1.
+    fn default() -> Self {
+        Self {
+            num_seed_steps: 5000,
+            replay_buffer_capacity: 1_000_000,
+            batch_size: 256,
+            steps_per_env: 4,
+            grad_updates_per_step: 16,
+            actor_update_freq: 1,
+            critic_ensemble: 10,
+            target_pool: 10,
+            num_min_qs: 2,
+            discount: 0.99,
+            tau: 0.005,
+            backup_entropy: false,
+            learnable_temp: true,
+            initial_temperature: 1.0,
+            target_entropy: None,
+            actor_lr: 3e-4,
+            critic_lr: 3e-4,
+            temp_lr: 3e-4,
+            adam_beta1: 0.9,
+            adam_beta2: 0.999,
+            adam_eps: 1e-8,
+            eval_freq: 50_000,
+            eval_steps: 1000,
+            log_freq: 1000,
+            save_freq: 50_000,
+            utd_mode: UtdMode::Sync,
+            device: Device::Cpu,
+            matmul_precision: MatmulPrecision::Fp32,
+        }
+    }
+}
+
+impl Default for NetworkConfig {
+    fn default() -> Self {
+        Self {
+            actor_features: vec![256, 256, 256],
+            critic_features: vec![256, 256, 256],
+            critic_layer_norm: true,
+            layer_norm_eps: 1e-6,
+            log_std_min: -5.0,
+            log_std_max: 2.0,
+        }
+    }
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            steps: 2_000_000,
+            dataset_path: None,
+            num_demos: 5,
+            shuffle_demos: true,
+            data_action_scale: None,
+            train_on_demo_actions: true,
+            load_actor: true,
+            load_critic: true,
+            load_as_offline_buffer: true,
+            load_as_online_buffer: false,
+            use_orig_env_for_eval: true,
+            eval_start_of_demos: false,
+            stage_2_only: false,
+            stage_1_only: false,
+        }
+    }
+}
+
+impl Default for ReverseConfig {
+    fn default() -> Self {
+        Self {
+            curriculum_method: CurriculumMethod::PerDemo,
+            start_step_sampler: StartStepSampler::Geometric,
+            geometric_probs: vec![0.5, 0.25, 0.125, 0.0625, 0.0625],
+            reverse_step_size: 4,
+            per_demo_buffer_size: 3,
+            demo_horizon_to_max_steps_ratio: 3.0,
+            time_limit: TimeLimitFormula::Reference,
+            time_limit_offset: 16,
+            solved_demo_weight: 1e-6,
+            solved_frac_threshold: 0.9,
+            global_success_threshold: 0.9,
+            max_trailing_success_states: 50,
+        }
+    }
+}
+
+impl Default for ForwardConfig {
+    fn default() -> Self {
+        Self {
+            forward_curriculum: ForwardScore::SuccessOnceScore,
+            num_seeds: 1000,
+            score_transform: ScoreTransform::Rankmin,
+            score_temperature: 0.1,
+            staleness_transform: ScoreTransform::Rankmin,
+            staleness_temperature: 0.1,
+            staleness_coef: 0.1,
+            mix: LevelMix::Reference,
+            score_window: 5,
+            score_threshold: 0.75,
+            returns_buffer_size: 20,
+            initial_score: 2.0,
+            include_demo_starts: true,
+        }
+    }
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        Self {
+            num_actors: 2,
+            num_eval_actors: 1,
+            transport: Transport::Auto,
+            lease_timeout_s: 120.0,
+            snapshot_every_reports: 500,
+            transition_batch: 64,
+            max_policy_lag: 50,
+            curriculum_port: 0,
+            learner_port: 0,
+            dashboard_port: 0,
+            stop_at_eval_success: None,
+        }
+    }
+}

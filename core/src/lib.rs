@@ -1,0 +1,13 @@
+//! rfcl-core: the domain shared by every rfcl process, with no network I/O.
+//!
+//! * [`config`]: the run configuration (every option of the RFCL spec), YAML resolution with
+//!   `base_config` inheritance, dotted overrides and validation.
+//! * [`demo`]: demonstration datasets in ManiSkill's trajectory format (HDF5 + JSON sidecar).
+//! * [`transition`]: the one fixed binary layout of a transition record, shared by both transports.
+#![forbid(unsafe_code)]
+
+pub mod config;
+pub mod demo;
+pub mod transition;
+
+pub use config::RunConfig;

@@ -1,0 +1,87 @@
+#!/usr/bin/env bash
+# One idempotent set-up for a fresh Debian 12 machine: system packages, the Python venv with the
+# pinned simulator/torch matrix, and the release build. Each step says what it does and skips what is
+# already there. Usage: scripts/setup.sh [--no-build] [--no-python]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$(pwd)
+VENV=${RFCL_VENV:-$ROOT/.venv}
+BUILD=1; PYTHON=1
+for arg in "$@"; do
+  case "$arg" in
+    --no-build) BUILD=0 ;;
+    --no-python) PYTHON=0 ;;
+    *) echo "setup: unknown argument '$arg' (expected --no-build or --no-python)" >&2; exit 2 ;;
+  esac
+done
+
+step() { printf '\n==> %s\n' "$*"; }
+fail() { printf 'setup: FAILED: %s\n' "$*" >&2; exit 1; }
+SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+
+# ---------------------------------------------------------------- system packages
+APT_PKGS=(pkg-config libhdf5-dev protobuf-compiler chromium curl ca-certificates)
+BACKPORTS_PKGS=(mesa-vulkan-drivers libvulkan1)
+missing=()
+for p in "${APT_PKGS[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+mesa_ok=0
+if dpkg -s mesa-vulkan-drivers >/dev/null 2>&1; then
+  v=$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers)
+  dpkg --compare-versions "$v" ge 24.3 && mesa_ok=1
+fi
+if [ ${#missing[@]} -eq 0 ] && [ $mesa_ok = 1 ]; then
+  step "system packages: present (${APT_PKGS[*]}, Mesa >= 24.3)"
+else
+  step "system packages: installing ${missing[*]} ${BACKPORTS_PKGS[*]} (Mesa >= 24.3 from bookworm-backports)"
+  if ! grep -rqs bookworm-backports /etc/apt/sources.list /etc/apt/sources.list.d/; then
+    echo "deb http://deb.debian.org/debian bookworm-backports main" | $SUDO tee /etc/apt/sources.list.d/rfcl-backports.list >/dev/null
+  fi
+  $SUDO apt-get update -qq || fail "apt-get update (is a Debian mirror reachable?)"
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null \
+    || fail "apt-get install ${missing[*]}"
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq -t bookworm-backports "${BACKPORTS_PKGS[@]}" >/dev/null \
+    || fail "apt-get install -t bookworm-backports ${BACKPORTS_PKGS[*]} (ManiSkill's CPU renderer needs Mesa >= 24.3)"
+fi
+
+# ---------------------------------------------------------------- python venv
+# torch 2.11.0 is pinned to match tch 0.24. PyPI's wheel is a CUDA build; its nvidia-* dependencies are
+# ~2.7 GB. On a machine without an NVIDIA GPU we install torch --no-deps plus its pure-Python deps and
+# only the two CUDA runtime libraries libtorch_cpu links against (cudart, cupti).
+if [ $PYTHON = 1 ]; then
+  PY=${RFCL_PYTHON:-python3}
+  if [ ! -x "$VENV/bin/python" ]; then
+    step "python venv: creating $VENV"
+    "$PY" -m venv "$VENV" || fail "python3 -m venv $VENV"
+  else
+    step "python venv: $VENV present"
+  fi
+  if "$VENV/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '2.11.0')" 2>/dev/null; then
+    step "torch 2.11.0: present"
+  else
+    "$VENV/bin/pip" install -q --upgrade pip
+    if command -v nvidia-smi >/dev/null 2>&1 || [ "${RFCL_TORCH_CUDA:-0}" = 1 ]; then
+      step "torch 2.11.0: installing the full CUDA build (NVIDIA GPU found)"
+      "$VENV/bin/pip" install -q torch==2.11.0 || fail "pip install torch==2.11.0"
+    else
+      step "torch 2.11.0: installing the CPU-only set (no NVIDIA GPU found; RFCL_TORCH_CUDA=1 forces the CUDA build)"
+      "$VENV/bin/pip" install -q --no-deps torch==2.11.0 || fail "pip install --no-deps torch==2.11.0"
+      "$VENV/bin/pip" install -q -r "$ROOT/python/requirements-torch-cpu.txt" || fail "pip install torch's CPU-side dependencies"
+    fi
+  fi
+  if "$VENV/bin/python" -c "import mani_skill, metaworld, gymnasium_robotics, h5py" 2>/dev/null; then
+    step "simulators (mani_skill, metaworld, gymnasium-robotics, h5py): present"
+  else
+    step "simulators: installing the pinned matrix from python/requirements.txt"
+    "$VENV/bin/pip" install -q -r "$ROOT/python/requirements.txt" || fail "pip install -r python/requirements.txt"
+  fi
+  "$VENV/bin/pip" install -q -e "$ROOT/python" --no-deps >/dev/null || fail "pip install -e python/"
+fi
+
+# ---------------------------------------------------------------- rust build
+if [ $BUILD = 1 ]; then
+  step "cargo build --release (first build ~6 min on 2 cores; incremental builds take seconds)"
+  export LIBTORCH_USE_PYTORCH=1 PYO3_PYTHON="$VENV/bin/python"
+  export PATH="$VENV/bin:$PATH"
+  cargo build --release --quiet || fail "cargo build --release"
+fi
+step "set-up done"
