@@ -37,44 +37,45 @@ else
     echo "deb http://deb.debian.org/debian bookworm-backports main" | $SUDO tee /etc/apt/sources.list.d/rfcl-backports.list >/dev/null
   fi
   $SUDO apt-get update -qq || fail "apt-get update (is a Debian mirror reachable?)"
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null \
-    || fail "apt-get install ${missing[*]}"
+  if [ ${#missing[@]} -gt 0 ]; then
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null \
+      || fail "apt-get install ${missing[*]}"
+  fi
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq -t bookworm-backports "${BACKPORTS_PKGS[@]}" >/dev/null \
     || fail "apt-get install -t bookworm-backports ${BACKPORTS_PKGS[*]} (ManiSkill's CPU renderer needs Mesa >= 24.3)"
 fi
 
 # ---------------------------------------------------------------- python venv
-# torch 2.11.0 is pinned to match tch 0.24. PyPI's wheel is a CUDA build; its nvidia-* dependencies are
-# ~2.7 GB. On a machine without an NVIDIA GPU we install torch --no-deps plus its pure-Python deps and
-# only the two CUDA runtime libraries libtorch_cpu links against (cudart, cupti).
+# torch 2.11.0 is pinned to match tch 0.24 (its libtorch is what the Rust learner and actors link).
+# PyPI's wheel is a CUDA 13 build. A CPU-only install (torch --no-deps) was measured and does not
+# work: `import torch` loads libtorch_python -> libtorch.so, which needs cuBLAS, cuDNN, NCCL, ... from
+# the nvidia-* wheels, and ManiSkill imports torch. So the full wheel set is installed (~1 min here).
 if [ $PYTHON = 1 ]; then
   PY=${RFCL_PYTHON:-python3}
   if [ ! -x "$VENV/bin/python" ]; then
     step "python venv: creating $VENV"
-    "$PY" -m venv "$VENV" || fail "python3 -m venv $VENV"
+    "$PY" -m venv "$VENV" || fail "$PY -m venv $VENV (is python3-venv installed?)"
   else
     step "python venv: $VENV present"
   fi
   if "$VENV/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '2.11.0')" 2>/dev/null; then
     step "torch 2.11.0: present"
   else
+    step "torch 2.11.0: installing (CUDA 13 wheels from PyPI, ~2.7 GB download)"
     "$VENV/bin/pip" install -q --upgrade pip
-    if command -v nvidia-smi >/dev/null 2>&1 || [ "${RFCL_TORCH_CUDA:-0}" = 1 ]; then
-      step "torch 2.11.0: installing the full CUDA build (NVIDIA GPU found)"
-      "$VENV/bin/pip" install -q torch==2.11.0 || fail "pip install torch==2.11.0"
-    else
-      step "torch 2.11.0: installing the CPU-only set (no NVIDIA GPU found; RFCL_TORCH_CUDA=1 forces the CUDA build)"
-      "$VENV/bin/pip" install -q --no-deps torch==2.11.0 || fail "pip install --no-deps torch==2.11.0"
-      "$VENV/bin/pip" install -q -r "$ROOT/python/requirements-torch-cpu.txt" || fail "pip install torch's CPU-side dependencies"
-    fi
+    "$VENV/bin/pip" install -q torch==2.11.0 || fail "pip install torch==2.11.0"
   fi
-  if "$VENV/bin/python" -c "import mani_skill, metaworld, gymnasium_robotics, h5py" 2>/dev/null; then
+  if "$VENV/bin/python" -c "import mani_skill, metaworld, gymnasium_robotics, h5py, pytest" 2>/dev/null; then
     step "simulators (mani_skill, metaworld, gymnasium-robotics, h5py): present"
   else
     step "simulators: installing the pinned matrix from python/requirements.txt"
     "$VENV/bin/pip" install -q -r "$ROOT/python/requirements.txt" || fail "pip install -r python/requirements.txt"
   fi
-  "$VENV/bin/pip" install -q -e "$ROOT/python" --no-deps >/dev/null || fail "pip install -e python/"
+  if ! "$VENV/bin/python" -c "import rfcl_sim" 2>/dev/null; then
+    step "rfcl_sim (python/): installing in editable mode"
+    "$VENV/bin/pip" install -q -e "$ROOT/python" --no-deps >/dev/null || fail "pip install -e python/"
+  fi
+  "$VENV/bin/python" -m rfcl_sim.check || fail "the simulator matrix in $VENV is not the tested one (see above)"
 fi
 
 # ---------------------------------------------------------------- rust build

@@ -3,11 +3,13 @@
 //! * [`config`]: the run configuration (every option of the RFCL spec), YAML resolution with
 //!   `base_config` inheritance, dotted overrides and validation.
 //! * [`demo`]: demonstration datasets in ManiSkill's trajectory format (HDF5 + JSON sidecar).
+//! * [`lease`]: reset leases and episode reports (the curriculum contract).
 //! * [`transition`]: the one fixed binary layout of a transition record, shared by both transports.
 #![forbid(unsafe_code)]
 
 pub mod config;
 pub mod demo;
+pub mod lease;
 pub mod transition;
 
 pub use config::RunConfig;

@@ -1,8 +1,11 @@
-//! The rfcl wire protocol, package `rfcl.v1`, generated from `proto/rfcl.proto` at build time.
+//! The rfcl wire protocol, package `rfcl.v1`, generated from `proto/rfcl.proto` at build time
+//! (protox, so no system protoc is needed).
 //!
-//! Wire types stay at the edges: services convert them into rfcl-core's domain types once, in
-//! `rfcl_core::wire`-free code paths (see each service's `convert` module).
+//! Wire types stay at the edges: [`convert`] is the one place where they become rfcl-core's domain
+//! types and back, rejecting malformed messages with an error that names the field.
 #![forbid(unsafe_code)]
+
+pub mod convert;
 
 pub mod v1 {
     tonic::include_proto!("rfcl.v1");

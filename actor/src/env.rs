@@ -1,0 +1,161 @@
+//! The env trait: what an actor needs from a simulator.
+//!
+//! An [`Env`] is one simulator instance stepped by one actor. It knows nothing about rewards,
+//! time limits or curricula:
+//!
+//! * **Reward** is computed by the actor as `+1` on every step whose resulting state is a success
+//!   state, from [`StepOutcome::success`] (spec 5.6). The env's own reward, if it has one, is unused.
+//! * **Episodes never end on success** (spec 5.6). Truncation at [`Env::horizon`] or at the dynamic
+//!   time limit of stage 1 (spec 2.5) is the actor's job; an env keeps stepping as long as it is asked.
+//! * **Resets** come in two kinds: to a seed (a level of the forward curriculum or an initial state of
+//!   the task distribution, spec 2.4 step 3 and 3.1) and to a demo state (spec 2.4 steps 3-6).
+//!
+//! The env state is an opaque `f32` vector whose flattening each env documents in its
+//! [`StateLayout`] (ARCHITECTURE.md, "Contracts: env state"). Geometry and goals may live outside that
+//! vector, which is why restoring a state always starts with a reset to the demo's seed and options
+//! (spec 2.4, 12.13).
+//!
+//! The native PointMaze ([`crate::pointmaze::PointMaze`]) implements the trait in Rust; the
+//! ManiSkill, MetaWorld and Adroit adapters implement it through Python workers.
+
+use serde::Serialize;
+
+/// Why an env refused a call. Each variant names what was wrong with the input.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum EnvError {
+    /// The action does not have [`Env::action_dim`] components.
+    #[error("action has {got} components, the env takes {expected}")]
+    ActionDim { expected: usize, got: usize },
+    /// An action component is NaN or infinite.
+    #[error("action component {index} is {value}, not a finite number")]
+    NonFiniteAction { index: usize, value: f32 },
+    /// The state does not have as many values as the env's [`StateLayout`].
+    #[error("state has {got} values, the env's state layout has {expected}")]
+    StateLen { expected: usize, got: usize },
+    /// A state value is out of its domain, or the state is not physically consistent.
+    #[error("state field `{field}` is invalid: {reason}")]
+    InvalidState { field: String, reason: String },
+    /// The reset options are not ones this env understands.
+    #[error("reset options are invalid: {reason}")]
+    InvalidOptions { reason: String },
+}
+
+/// The result of one [`Env::step`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepOutcome {
+    /// Observation of the state after the action, [`Env::obs_dim`] values.
+    pub obs: Vec<f32>,
+    /// Whether the state after the action is a success state. The actor's sparse reward is
+    /// `success as u8` on every step (spec 5.6, 12.6).
+    pub success: bool,
+}
+
+/// One named, contiguous piece of an env state vector.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct StateField {
+    /// Name of the piece, e.g. `qpos`.
+    pub name: String,
+    /// Index of its first value in the state vector.
+    pub offset: usize,
+    /// Number of values.
+    pub len: usize,
+}
+
+/// How an env flattens its state into the `f32` vector of [`Env::get_state`]: named fields laid
+/// out back to back, in order.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct StateLayout {
+    fields: Vec<StateField>,
+}
+
+impl StateLayout {
+    /// A layout of `(name, len)` fields placed back to back from offset 0.
+    pub fn new<N: Into<String>>(fields: impl IntoIterator<Item = (N, usize)>) -> Self {
+        let mut offset = 0;
+        let fields = fields
+            .into_iter()
+            .map(|(name, len)| {
+                let field = StateField { name: name.into(), offset, len };
+                offset += len;
+                field
+            })
+            .collect();
+        Self { fields }
+    }
+
+    /// The fields, in vector order.
+    pub fn fields(&self) -> &[StateField] {
+        &self.fields
+    }
+
+    /// The field called `name`.
+    pub fn field(&self, name: &str) -> Option<&StateField> {
+        self.fields.iter().find(|f| f.name == name)
+    }
+
+    /// Length of the whole state vector.
+    pub fn len(&self) -> usize {
+        self.fields.last().map_or(0, |f| f.offset + f.len)
+    }
+
+    /// Whether the state vector is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The slice of `state` that holds `field`, if `state` has this layout's length.
+    pub fn slice<'s>(&self, state: &'s [f32], field: &str) -> Option<&'s [f32]> {
+        let f = self.field(field)?;
+        (state.len() == self.len()).then(|| &state[f.offset..f.offset + f.len])
+    }
+}
+
+/// A simulator instance stepped by an actor. Object safe: actors hold `Box<dyn Env>`.
+pub trait Env: Send {
+    /// Length of every observation.
+    fn obs_dim(&self) -> usize;
+
+    /// Length of every action. Actions are in `[-1, 1]` per component (the agent's units).
+    fn action_dim(&self) -> usize;
+
+    /// The task's horizon H: the actor truncates episodes after H steps (spec 5.6, 8.3).
+    fn horizon(&self) -> usize;
+
+    /// How [`Env::get_state`] flattens the state.
+    fn state_layout(&self) -> &StateLayout;
+
+    /// Length of the state vector.
+    fn state_dim(&self) -> usize {
+        self.state_layout().len()
+    }
+
+    /// Resets to an initial state and returns its observation (spec 2.4 step 3, 3.1).
+    ///
+    /// With `Some(seed)` the initial state is a deterministic function of `seed` and `options`, and
+    /// the env's RNG restarts from `seed`. With `None` the env draws from its own RNG, continuing
+    /// its chain.
+    fn reset_to_seed(
+        &mut self,
+        seed: Option<u64>,
+        options: &serde_json::Value,
+    ) -> Result<Vec<f32>, EnvError>;
+
+    /// Resets to a stored state (a demo state, spec 2.4 steps 3-6) and returns its observation.
+    ///
+    /// Implementations first reset exactly as [`Env::reset_to_seed`] with the demo's `seed` and
+    /// `options` (which restores randomisation the state vector does not carry), **then** set the
+    /// state (spec 12.13). Afterwards [`Env::get_state`] returns `state` unchanged.
+    fn reset_to_state(
+        &mut self,
+        seed: Option<u64>,
+        options: &serde_json::Value,
+        state: &[f32],
+    ) -> Result<Vec<f32>, EnvError>;
+
+    /// Applies one action and reports the new observation and whether it is a success state.
+    /// Never terminates the episode (spec 5.6).
+    fn step(&mut self, action: &[f32]) -> Result<StepOutcome, EnvError>;
+
+    /// The current state, laid out as [`Env::state_layout`] says.
+    fn get_state(&self) -> Vec<f32>;
+}

@@ -1,0 +1,64 @@
+//! Reset leases and episode reports: the curriculum contract of ARCHITECTURE.md, as domain types.
+//!
+//! The wire forms live in rfcl-proto; `rfcl_proto::convert` is the one place that converts between
+//! the two.
+use serde::{Deserialize, Serialize};
+
+/// What kind of reset a lease asks for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum LeaseKind {
+    /// Stage 1: reset with the demo's seed/options, then set the simulator to a demo state (spec 2.4).
+    DemoState,
+    /// Stage 2: a forward-curriculum level (spec 3).
+    Level,
+    /// Evaluation on a held-out seed of the true initial-state distribution (spec 5.7).
+    Eval,
+}
+
+/// Seed and options for the simulator's reset, applied before any env state (spec 2.4).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct ResetArgs {
+    pub seed: Option<u64>,
+    /// A JSON object (empty when there are no options).
+    pub options: serde_json::Map<String, serde_json::Value>,
+}
+
+/// Where one episode starts, handed out by the curriculum server.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ResetLease {
+    pub lease_id: u64,
+    pub kind: LeaseKind,
+    pub demo_id: u32,
+    pub start_index: u32,
+    /// Flat simulator state; empty when the reset is from a seed alone.
+    pub env_state: Vec<f32>,
+    pub reset: ResetArgs,
+    /// Steps after which the episode is truncated.
+    pub time_limit: u32,
+    pub stage: u32,
+    pub stage_epoch: u64,
+    /// Forward-curriculum level (LEVEL leases).
+    pub level: u32,
+}
+
+/// What an actor asks for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AcquireRequest {
+    pub actor_id: u32,
+    pub env_index: u32,
+    pub eval: bool,
+}
+
+/// The outcome of one leased episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeReport {
+    pub lease_id: u64,
+    pub success_at_end: bool,
+    pub success_once: bool,
+    pub episode_return: f64,
+    pub length: u32,
+    pub policy_version: u64,
+    pub stage_epoch: u64,
+    pub actor_id: u32,
+    pub actor_env_steps: u64,
+}

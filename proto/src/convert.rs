@@ -1,0 +1,259 @@
+//! The one place where wire types become domain types and back. Every malformed message is
+//! rejected here with an error that names the message and the field.
+use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
+
+use crate::v1;
+
+/// A wire message that does not describe a valid domain value.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("malformed {message}.{field}: {problem}")]
+pub struct WireError {
+    pub message: &'static str,
+    pub field: &'static str,
+    pub problem: String,
+}
+
+impl WireError {
+    fn new(message: &'static str, field: &'static str, problem: impl Into<String>) -> Self {
+        Self { message, field, problem: problem.into() }
+    }
+}
+
+impl From<WireError> for tonic::Status {
+    fn from(err: WireError) -> Self {
+        tonic::Status::invalid_argument(err.to_string())
+    }
+}
+
+impl From<LeaseKind> for v1::LeaseKind {
+    fn from(kind: LeaseKind) -> Self {
+        match kind {
+            LeaseKind::DemoState => v1::LeaseKind::DemoState,
+            LeaseKind::Level => v1::LeaseKind::Level,
+            LeaseKind::Eval => v1::LeaseKind::Eval,
+        }
+    }
+}
+
+fn lease_kind(raw: i32) -> Result<LeaseKind, WireError> {
+    match v1::LeaseKind::try_from(raw) {
+        Ok(v1::LeaseKind::DemoState) => Ok(LeaseKind::DemoState),
+        Ok(v1::LeaseKind::Level) => Ok(LeaseKind::Level),
+        Ok(v1::LeaseKind::Eval) => Ok(LeaseKind::Eval),
+        Ok(v1::LeaseKind::Unspecified) | Err(_) => Err(WireError::new(
+            "ResetLease",
+            "kind",
+            format!("expected DEMO_STATE, LEVEL or EVAL, got {raw}"),
+        )),
+    }
+}
+
+impl From<ResetArgs> for v1::ResetArgs {
+    fn from(args: ResetArgs) -> Self {
+        v1::ResetArgs {
+            has_seed: args.seed.is_some(),
+            seed: args.seed.unwrap_or(0),
+            options_json: serde_json::Value::Object(args.options).to_string(),
+        }
+    }
+}
+
+impl TryFrom<v1::ResetArgs> for ResetArgs {
+    type Error = WireError;
+    fn try_from(wire: v1::ResetArgs) -> Result<Self, WireError> {
+        let options = if wire.options_json.trim().is_empty() {
+            serde_json::Map::new()
+        } else {
+            match serde_json::from_str(&wire.options_json) {
+                Ok(serde_json::Value::Object(map)) => map,
+                Ok(other) => {
+                    return Err(WireError::new("ResetArgs", "options_json", format!("expected a JSON object, got {other}")))
+                }
+                Err(err) => return Err(WireError::new("ResetArgs", "options_json", format!("invalid JSON: {err}"))),
+            }
+        };
+        Ok(ResetArgs { seed: wire.has_seed.then_some(wire.seed), options })
+    }
+}
+
+impl From<ResetLease> for v1::ResetLease {
+    fn from(lease: ResetLease) -> Self {
+        v1::ResetLease {
+            lease_id: lease.lease_id,
+            kind: v1::LeaseKind::from(lease.kind) as i32,
+            demo_id: lease.demo_id,
+            start_index: lease.start_index,
+            env_state: lease.env_state,
+            reset: Some(lease.reset.into()),
+            time_limit: lease.time_limit,
+            stage_epoch: lease.stage_epoch,
+            stage: lease.stage,
+            level: lease.level,
+        }
+    }
+}
+
+impl TryFrom<v1::ResetLease> for ResetLease {
+    type Error = WireError;
+    fn try_from(wire: v1::ResetLease) -> Result<Self, WireError> {
+        let kind = lease_kind(wire.kind)?;
+        if wire.time_limit == 0 {
+            return Err(WireError::new("ResetLease", "time_limit", "expected at least 1 step, got 0"));
+        }
+        if kind == LeaseKind::DemoState && wire.env_state.is_empty() {
+            return Err(WireError::new("ResetLease", "env_state", "a DEMO_STATE lease needs the demo's env state, got none"));
+        }
+        let reset = wire.reset.map(ResetArgs::try_from).transpose()?.unwrap_or_default();
+        Ok(ResetLease {
+            lease_id: wire.lease_id,
+            kind,
+            demo_id: wire.demo_id,
+            start_index: wire.start_index,
+            env_state: wire.env_state,
+            reset,
+            time_limit: wire.time_limit,
+            stage: wire.stage,
+            stage_epoch: wire.stage_epoch,
+            level: wire.level,
+        })
+    }
+}
+
+impl From<AcquireRequest> for v1::AcquireRequest {
+    fn from(req: AcquireRequest) -> Self {
+        v1::AcquireRequest { actor_id: req.actor_id, env_index: req.env_index, eval: req.eval }
+    }
+}
+
+impl From<v1::AcquireRequest> for AcquireRequest {
+    fn from(wire: v1::AcquireRequest) -> Self {
+        AcquireRequest { actor_id: wire.actor_id, env_index: wire.env_index, eval: wire.eval }
+    }
+}
+
+impl From<EpisodeReport> for v1::EpisodeReport {
+    fn from(r: EpisodeReport) -> Self {
+        v1::EpisodeReport {
+            lease_id: r.lease_id,
+            success_at_end: r.success_at_end,
+            success_once: r.success_once,
+            episode_return: r.episode_return,
+            length: r.length,
+            policy_version: r.policy_version,
+            stage_epoch: r.stage_epoch,
+            actor_id: r.actor_id,
+            actor_env_steps: r.actor_env_steps,
+        }
+    }
+}
+
+impl TryFrom<v1::EpisodeReport> for EpisodeReport {
+    type Error = WireError;
+    fn try_from(wire: v1::EpisodeReport) -> Result<Self, WireError> {
+        if wire.lease_id == 0 {
+            return Err(WireError::new("EpisodeReport", "lease_id", "expected a lease id from Acquire, got 0"));
+        }
+        if wire.length == 0 {
+            return Err(WireError::new("EpisodeReport", "length", "expected at least 1 step, got 0"));
+        }
+        if !wire.episode_return.is_finite() {
+            return Err(WireError::new("EpisodeReport", "episode_return", format!("expected a finite number, got {}", wire.episode_return)));
+        }
+        if wire.success_at_end && !wire.success_once {
+            return Err(WireError::new("EpisodeReport", "success_once", "success_at_end is true, so success_once must be true"));
+        }
+        Ok(EpisodeReport {
+            lease_id: wire.lease_id,
+            success_at_end: wire.success_at_end,
+            success_once: wire.success_once,
+            episode_return: wire.episode_return,
+            length: wire.length,
+            policy_version: wire.policy_version,
+            stage_epoch: wire.stage_epoch,
+            actor_id: wire.actor_id,
+            actor_env_steps: wire.actor_env_steps,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lease() -> ResetLease {
+        let mut options = serde_json::Map::new();
+        options.insert("goal".into(), serde_json::json!([1.0, 2.0]));
+        ResetLease {
+            lease_id: 7,
+            kind: LeaseKind::DemoState,
+            demo_id: 2,
+            start_index: 40,
+            env_state: vec![0.5, -1.0, 3.25],
+            reset: ResetArgs { seed: Some(11), options },
+            time_limit: 17,
+            stage: 1,
+            stage_epoch: 0,
+            level: 0,
+        }
+    }
+
+    #[test]
+    fn lease_round_trips() {
+        let wire: v1::ResetLease = lease().into();
+        assert_eq!(wire.kind, v1::LeaseKind::DemoState as i32);
+        assert_eq!(ResetLease::try_from(wire).unwrap(), lease());
+    }
+
+    #[test]
+    fn seedless_reset_round_trips() {
+        let mut l = lease();
+        l.kind = LeaseKind::Eval;
+        l.env_state.clear();
+        l.reset = ResetArgs::default();
+        let wire: v1::ResetLease = l.clone().into();
+        assert!(!wire.reset.as_ref().unwrap().has_seed);
+        assert_eq!(ResetLease::try_from(wire).unwrap(), l);
+    }
+
+    #[test]
+    fn malformed_leases_name_the_field() {
+        let mut wire: v1::ResetLease = lease().into();
+        wire.kind = 0;
+        let err = ResetLease::try_from(wire.clone()).unwrap_err();
+        assert_eq!(err.to_string(), "malformed ResetLease.kind: expected DEMO_STATE, LEVEL or EVAL, got 0");
+        wire.kind = 1;
+        wire.env_state.clear();
+        assert_eq!(ResetLease::try_from(wire.clone()).unwrap_err().field, "env_state");
+        wire.env_state = vec![1.0];
+        wire.reset.as_mut().unwrap().options_json = "[1,2]".into();
+        assert_eq!(ResetLease::try_from(wire).unwrap_err().field, "options_json");
+    }
+
+    #[test]
+    fn report_round_trips_and_rejects_nonsense() {
+        let report = EpisodeReport {
+            lease_id: 3,
+            success_at_end: true,
+            success_once: true,
+            episode_return: 4.0,
+            length: 16,
+            policy_version: 9,
+            stage_epoch: 1,
+            actor_id: 2,
+            actor_env_steps: 1000,
+        };
+        let wire: v1::EpisodeReport = report.clone().into();
+        assert_eq!(EpisodeReport::try_from(wire.clone()).unwrap(), report);
+        let mut bad = wire.clone();
+        bad.episode_return = f64::NAN;
+        assert_eq!(EpisodeReport::try_from(bad).unwrap_err().field, "episode_return");
+        let mut bad = wire.clone();
+        bad.success_once = false;
+        assert_eq!(EpisodeReport::try_from(bad).unwrap_err().field, "success_once");
+        let mut bad = wire;
+        bad.lease_id = 0;
+        let status: tonic::Status = EpisodeReport::try_from(bad).unwrap_err().into();
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(status.message().contains("EpisodeReport.lease_id"));
+    }
+}
