@@ -11,17 +11,18 @@
 //!   the task distribution, spec 2.4 step 3 and 3.1) and to a demo state (spec 2.4 steps 3-6).
 //!
 //! The env state is an opaque `f32` vector whose flattening each env documents in its
-//! [`StateLayout`] (ARCHITECTURE.md, "Contracts: env state"). Geometry and goals may live outside that
-//! vector, which is why restoring a state always starts with a reset to the demo's seed and options
-//! (spec 2.4, 12.13).
+//! [`StateLayout`] (ARCHITECTURE.md, "Contracts: env state"): the same type that describes the
+//! `env_states` of a demo file, so that an env and a demo set can be checked against each other.
+//! Geometry and goals may live outside that vector, which is why restoring a state always starts
+//! with a reset to the demo's seed and options (spec 2.4, 12.13).
 //!
 //! The native PointMaze ([`crate::pointmaze::PointMaze`]) implements the trait in Rust; the
 //! ManiSkill, MetaWorld and Adroit adapters implement it through Python workers.
 
-use serde::Serialize;
+pub use rfcl_core::demo::{StateEntry, StateKind, StateLayout};
 
 /// Why an env refused a call. Each variant names what was wrong with the input.
-#[derive(Debug, Clone, thiserror::Error)]
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum EnvError {
     /// The action does not have [`Env::action_dim`] components.
     #[error("action has {got} components, the env takes {expected}")]
@@ -50,66 +51,6 @@ pub struct StepOutcome {
     pub success: bool,
 }
 
-/// One named, contiguous piece of an env state vector.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
-pub struct StateField {
-    /// Name of the piece, e.g. `qpos`.
-    pub name: String,
-    /// Index of its first value in the state vector.
-    pub offset: usize,
-    /// Number of values.
-    pub len: usize,
-}
-
-/// How an env flattens its state into the `f32` vector of [`Env::get_state`]: named fields laid
-/// out back to back, in order.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
-pub struct StateLayout {
-    fields: Vec<StateField>,
-}
-
-impl StateLayout {
-    /// A layout of `(name, len)` fields placed back to back from offset 0.
-    pub fn new<N: Into<String>>(fields: impl IntoIterator<Item = (N, usize)>) -> Self {
-        let mut offset = 0;
-        let fields = fields
-            .into_iter()
-            .map(|(name, len)| {
-                let field = StateField { name: name.into(), offset, len };
-                offset += len;
-                field
-            })
-            .collect();
-        Self { fields }
-    }
-
-    /// The fields, in vector order.
-    pub fn fields(&self) -> &[StateField] {
-        &self.fields
-    }
-
-    /// The field called `name`.
-    pub fn field(&self, name: &str) -> Option<&StateField> {
-        self.fields.iter().find(|f| f.name == name)
-    }
-
-    /// Length of the whole state vector.
-    pub fn len(&self) -> usize {
-        self.fields.last().map_or(0, |f| f.offset + f.len)
-    }
-
-    /// Whether the state vector is empty.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// The slice of `state` that holds `field`, if `state` has this layout's length.
-    pub fn slice<'s>(&self, state: &'s [f32], field: &str) -> Option<&'s [f32]> {
-        let f = self.field(field)?;
-        (state.len() == self.len()).then(|| &state[f.offset..f.offset + f.len])
-    }
-}
-
 /// A simulator instance stepped by an actor. Object safe: actors hold `Box<dyn Env>`.
 pub trait Env: Send {
     /// Length of every observation.
@@ -126,7 +67,7 @@ pub trait Env: Send {
 
     /// Length of the state vector.
     fn state_dim(&self) -> usize {
-        self.state_layout().len()
+        self.state_layout().dim()
     }
 
     /// Resets to an initial state and returns its observation (spec 2.4 step 3, 3.1).

@@ -61,4 +61,6 @@ pub struct EpisodeReport {
     pub stage_epoch: u64,
     pub actor_id: u32,
     pub actor_env_steps: u64,
+    /// Env steps the learner had received when it published `policy_version`.
+    pub policy_env_steps: u64,
 }

@@ -1,5 +1,6 @@
 //! rfcl-core: the domain shared by every rfcl process, with no network I/O.
 //!
+//! * [`atomic`]: crash-safe file replacement for snapshots and checkpoints.
 //! * [`config`]: the run configuration (every option of the RFCL spec), YAML resolution with
 //!   `base_config` inheritance, dotted overrides and validation.
 //! * [`demo`]: demonstration datasets in ManiSkill's trajectory format (HDF5 + JSON sidecar).
@@ -7,6 +8,7 @@
 //! * [`transition`]: the one fixed binary layout of a transition record, shared by both transports.
 #![forbid(unsafe_code)]
 
+pub mod atomic;
 pub mod config;
 pub mod demo;
 pub mod lease;

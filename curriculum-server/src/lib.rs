@@ -1,1 +1,29 @@
-//! RFCL curricula.
+//! RFCL curricula (`shared/spec/RFCL.md` sections 2-4) as pure logic, with no I/O.
+//!
+//! * [`rank`]: rank transforms and probability vectors (spec 3.4).
+//! * [`reverse`]: stage 1, the per-demo reverse curriculum (spec 2).
+//! * [`forward`]: stage 2, the seed-based forward curriculum (spec 3).
+//! * [`stage`]: the stage machine and its epoch (spec 2.7, 4).
+//! * [`curriculum`]: all of them behind `acquire` / `report`, with one seeded random stream;
+//!   serialisable for snapshots.
+#![forbid(unsafe_code)]
+
+pub mod curriculum;
+pub mod forward;
+pub mod rank;
+pub mod reverse;
+pub mod stage;
+
+pub use curriculum::{
+    Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, EpisodeOutcome, ReportOutcome,
+};
+pub use forward::{Forward, Level, LevelSource};
+pub use reverse::{DemoMeta, DemoProgress, ReportEffect, Reverse, StartChoice};
+pub use stage::{Stage, StageChange, StageMachine};
+
+// The service around the pure logic.
+pub mod dashboard;
+pub mod leases;
+pub mod server;
+pub mod service;
+pub mod snapshot;

@@ -1,36 +1,131 @@
 //! `curriculum-server`: the single writer of RFCL curriculum state (spec sections 2-4), serving
 //! reset leases over gRPC and the curriculum dashboard over HTTP.
+use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use anyhow::{bail, Context, Result};
 use clap::Parser;
+use rfcl_core::demo::DemoSet;
+use rfcl_curriculum::server::{serve, Bound};
+use rfcl_curriculum::service::{demo_metas, unix_now, DemoResets, ServerState, Shared};
+use rfcl_curriculum::{snapshot, Curriculum};
 
 #[derive(Parser)]
-#[command(name = "curriculum-server", version, about = "RFCL curriculum server: reset leases over gRPC, dashboard over HTTP")]
+#[command(
+    name = "curriculum-server",
+    version,
+    about = "RFCL curriculum server: reset leases over gRPC, dashboard over HTTP"
+)]
 struct Args {
-    /// gRPC port (0 = pick a free one and print it).
+    /// gRPC port (0 = a free one; the chosen ports are printed on stdout).
     #[arg(long, default_value_t = 0)]
     port: u16,
-    /// Demo file (ManiSkill-format .h5 with its .json sidecar).
+    /// Dashboard HTTP port (0 = a free one).
+    #[arg(long, default_value_t = 0)]
+    dashboard_port: u16,
+    /// Address to bind both ports on.
+    #[arg(long, default_value = "127.0.0.1")]
+    bind: IpAddr,
+    /// Demo file (ManiSkill-format .h5 with its .json sidecar); default: the config's train.dataset_path.
     #[arg(long)]
-    demos: PathBuf,
+    demos: Option<PathBuf>,
     /// Run config (YAML).
     #[arg(long)]
     config: PathBuf,
-    /// Dashboard HTTP port (0 = pick a free one and print it).
-    #[arg(long, default_value_t = 0)]
-    dashboard_port: u16,
-    /// Continue the curriculum from the snapshot in this run directory.
+    /// Directory for snapshots; default runs/<name>.
     #[arg(long, value_name = "RUN_DIR")]
+    run_dir: Option<PathBuf>,
+    /// Continue the curriculum from the snapshot in this run directory.
+    #[arg(long, value_name = "RUN_DIR", conflicts_with = "run_dir")]
     resume: Option<PathBuf>,
+    /// Dotted config overrides, e.g. `reverse.reverse_step_size=8`.
+    overrides: Vec<String>,
 }
 
 fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
     let args = Args::parse();
-    eprintln!(
-        "error: the curriculum service is not built yet (issue 4); asked to serve {} on port {}",
-        args.demos.display(),
-        args.port
-    );
-    ExitCode::FAILURE
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: starting the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(args)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(args: Args) -> Result<()> {
+    let cfg = rfcl_core::config::resolve_file(&args.config, &args.overrides)?;
+    let demo_path = match (&args.demos, &cfg.train.dataset_path) {
+        (Some(p), _) => p.clone(),
+        (None, Some(p)) => PathBuf::from(p),
+        (None, None) => bail!(
+            "no demos: pass --demos FILE or set train.dataset_path in {}",
+            args.config.display()
+        ),
+    };
+    let all = DemoSet::load(&demo_path)?;
+    let demos = all.select(
+        cfg.train.num_demos as usize,
+        cfg.train.shuffle_demos,
+        cfg.demo_seed.unwrap_or(cfg.seed),
+    )?;
+    demos.check_dims(
+        cfg.env.obs_dim.map(|d| d as usize),
+        cfg.env.action_dim.map(|d| d as usize),
+    )?;
+
+    let run_dir = args
+        .resume
+        .clone()
+        .or(args.run_dir.clone())
+        .unwrap_or_else(|| PathBuf::from("runs").join(&cfg.name));
+    std::fs::create_dir_all(&run_dir)
+        .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
+    let state = match &args.resume {
+        Some(dir) => {
+            let state = snapshot::load(&snapshot::snapshot_path(dir), &cfg.name)?;
+            tracing::info!(
+                reports = state.stats.episodes,
+                "resumed the curriculum from {}",
+                dir.display()
+            );
+            state
+        }
+        None => ServerState::new(Curriculum::new(&cfg, &demo_metas(&demos))?, unix_now()),
+    };
+    tracing::info!(demos = demos.demos.len(), file = %demo_path.display(), "curriculum over {} demos", demos.demos.len());
+    let shared = Shared::new(state, cfg, DemoResets::from_demos(&demos));
+    let bound = Bound::bind(
+        SocketAddr::new(args.bind, args.port),
+        SocketAddr::new(args.bind, args.dashboard_port),
+    )
+    .await?;
+    let (grpc, dash) = bound.addrs()?;
+    // One machine-readable line on stdout: `rfcl train` and tests read the ports from it.
+    println!("curriculum-server ready grpc={grpc} dashboard=http://{dash}/");
+    serve(shared, bound, Some(run_dir), shutdown_signal()).await
+}
+
+/// SIGINT or SIGTERM.
+async fn shutdown_signal() {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut term = signal(SignalKind::terminate()).expect("installing the SIGTERM handler");
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = term.recv() => {}
+    }
 }

@@ -1,1 +1,26 @@
-//! RFCL learner.
+//! RFCL learner library: batched-ensemble SAC on libtorch and its replay (spec 5, 6.2-6.4, 4.2).
+//! No network I/O here; the `learner` binary wires it to the transports.
+//!
+//! * [`nets`]: actor, critic ensemble (one batched computation), initialisers, tanh-Gaussian policy
+//!   (spec 5.1).
+//! * [`sac`]: the losses and the training iteration (spec 5.2, 5.3), metrics of spec 5.8.
+//! * [`adam`]: in-place Adam whose state can be checkpointed (spec 5.3, 4.1).
+//! * [`replay`]: online/offline rings, 50/50 interleaved sampling, demos as offline data with
+//!   `data_action_scale`, the stage transition (spec 5.5, 6.2, 6.4, 4.2, 12.7).
+//! * [`batch`]: the tensors one iteration consumes.
+//! * [`bench`]: updates/s and FLOPs of the SAC update (`rfcl bench learner`).
+//!
+//! Thread count is the caller's choice (`tch::set_num_threads`); libtorch defaults to one thread
+//! per core.
+pub mod adam;
+pub mod batch;
+pub mod bench;
+pub mod error;
+pub mod nets;
+pub mod replay;
+pub mod sac;
+
+pub use batch::{Batch, HostBatch};
+pub use error::{LearnerError, Result};
+pub use replay::{Replay, ReplayBuffer};
+pub use sac::{Sac, UpdateMetrics};

@@ -143,6 +143,7 @@ impl From<EpisodeReport> for v1::EpisodeReport {
             stage_epoch: r.stage_epoch,
             actor_id: r.actor_id,
             actor_env_steps: r.actor_env_steps,
+            policy_env_steps: r.policy_env_steps,
         }
     }
 }
@@ -172,6 +173,7 @@ impl TryFrom<v1::EpisodeReport> for EpisodeReport {
             stage_epoch: wire.stage_epoch,
             actor_id: wire.actor_id,
             actor_env_steps: wire.actor_env_steps,
+            policy_env_steps: wire.policy_env_steps,
         })
     }
 }
@@ -241,6 +243,7 @@ mod tests {
             stage_epoch: 1,
             actor_id: 2,
             actor_env_steps: 1000,
+            policy_env_steps: 800,
         };
         let wire: v1::EpisodeReport = report.clone().into();
         assert_eq!(EpisodeReport::try_from(wire.clone()).unwrap(), report);

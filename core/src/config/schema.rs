@@ -53,8 +53,9 @@ pub struct EnvConfig {
     pub control_mode: Option<String>,
     /// Extra keyword arguments for the simulator's constructor.
     pub env_kwargs: serde_json::Map<String, serde_json::Value>,
-    /// Expected observation / action dims; checked against demos and the env when set.
+    /// Expected observation dim; checked against demos and the env when set.
     pub obs_dim: Option<u32>,
+    /// Expected action dim; checked against demos and the env when set.
     pub action_dim: Option<u32>,
 }
 
@@ -62,6 +63,7 @@ pub struct EnvConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct EvalEnvConfig {
+    /// Eval envs in total, over all eval actors (the reference's `num_eval_envs`).
     pub num_envs: u32,
     /// `None` = the training env's horizon.
     pub max_episode_steps: Option<u32>,
@@ -102,7 +104,9 @@ pub struct SacConfig {
     /// Uniform-random steps at the start of stage 1; policy-only, update-free steps at the start of
     /// stage 2 (spec 4.4, 5.4).
     pub num_seed_steps: u64,
+    /// Online replay capacity in transitions, split evenly over the train envs (spec 5.5).
     pub replay_buffer_capacity: u64,
+    /// Minibatch size B; each minibatch is half online, half offline (spec 5.2).
     pub batch_size: u32,
     /// Env steps per env per training iteration (1 sample-efficient, 4 fast).
     pub steps_per_env: u32,
@@ -123,21 +127,30 @@ pub struct SacConfig {
     pub tau: f64,
     /// Subtract the entropy term in the target (false in every reference config).
     pub backup_entropy: bool,
+    /// Learn the temperature alpha (spec 5.3).
     pub learnable_temp: bool,
+    /// alpha at the start.
     pub initial_temperature: f64,
     /// `None` = -A/2 (spec 5.3).
     pub target_entropy: Option<f64>,
+    /// Adam learning rates (spec 5.3).
     pub actor_lr: f64,
     pub critic_lr: f64,
     pub temp_lr: f64,
+    /// Adam moments and epsilon (spec 5.3).
     pub adam_beta1: f64,
     pub adam_beta2: f64,
     pub adam_eps: f64,
+    /// Evaluate every this many env steps, once past the seed steps (spec 5.7).
     pub eval_freq: u64,
+    /// Env steps per eval env per evaluation (spec 5.7).
     pub eval_steps: u64,
+    /// Log training metrics every this many env steps (spec 5.8).
     pub log_freq: u64,
+    /// Checkpoint every this many env steps.
     pub save_freq: u64,
     pub utd_mode: UtdMode,
+    /// Where the learner runs the SAC maths.
     pub device: Device,
     pub matmul_precision: MatmulPrecision,
 }
@@ -146,11 +159,14 @@ pub struct SacConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NetworkConfig {
+    /// Hidden layer widths of the actor trunk.
     pub actor_features: Vec<u32>,
+    /// Hidden layer widths of each critic.
     pub critic_features: Vec<u32>,
     /// LayerNorm before ReLU in every critic hidden layer.
     pub critic_layer_norm: bool,
     pub layer_norm_eps: f64,
+    /// Range of the tanh-squashed log-std (spec 5.1).
     pub log_std_min: f64,
     pub log_std_max: f64,
 }
@@ -161,19 +177,28 @@ pub struct NetworkConfig {
 pub struct TrainConfig {
     /// Total env-step budget over both stages.
     pub steps: u64,
-    /// Demo file (ManiSkill trajectory HDF5 + JSON sidecar); relative to the config file.
+    /// Demo file (ManiSkill trajectory HDF5 + JSON sidecar). In a file, a relative path is relative
+    /// to the directory of the file that sets it (in an override, to the working directory); a
+    /// resolved config holds it absolute.
     pub dataset_path: Option<String>,
+    /// Demos used (spec 6.1).
     pub num_demos: u32,
+    /// Shuffle the episode list before taking the first `num_demos` successful ones (spec 6.1).
     pub shuffle_demos: bool,
     /// Rescale demo actions into agent units (spec 6.4, deviation 1); `None` = off.
     pub data_action_scale: Option<f64>,
+    /// Load demo transitions as stage 1's offline buffer; false = demos only for resets (spec 6.3).
     pub train_on_demo_actions: bool,
+    /// Stage 2 keeps the stage-1 actor / critic (with optimiser states) (spec 4.1).
     pub load_actor: bool,
     pub load_critic: bool,
+    /// The stage-1 online buffer becomes stage 2's offline buffer (spec 4.2).
     pub load_as_offline_buffer: bool,
+    /// The stage-1 online buffer stays stage 2's online buffer, with no offline buffer (spec 4.2).
     pub load_as_online_buffer: bool,
     /// Evaluate on the true task distribution during stage 1 (spec 2.9).
     pub use_orig_env_for_eval: bool,
+    /// Stage-1 evals start at demo state 0 (spec 2.9).
     pub eval_start_of_demos: bool,
     /// Skip stage 1 and keep the demos as the offline buffer ("forward-only").
     pub stage_2_only: bool,
@@ -214,7 +239,9 @@ pub enum TimeLimitFormula {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ReverseConfig {
+    /// Per-demo or global advance rule (spec 2.6).
     pub curriculum_method: CurriculumMethod,
+    /// Start-step sampler (spec 2.3).
     pub start_step_sampler: StartStepSampler,
     /// Probabilities of offsets 0..k-1 of the truncated geometric sampler.
     pub geometric_probs: Vec<f64>,
@@ -224,6 +251,7 @@ pub struct ReverseConfig {
     pub per_demo_buffer_size: u32,
     /// phi; <= 0 disables the dynamic time limit.
     pub demo_horizon_to_max_steps_ratio: f64,
+    /// Dynamic time limit formula (spec 2.5).
     pub time_limit: TimeLimitFormula,
     /// The reference's +16.
     pub time_limit_offset: u32,
@@ -270,14 +298,19 @@ pub enum LevelMix {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ForwardConfig {
+    /// Score function (spec 3.3).
     pub forward_curriculum: ForwardScore,
     /// Levels are seeds 0..num_seeds-1.
     pub num_seeds: u32,
+    /// Transform of the scores into P_S, and its temperature beta_S (spec 3.4, 3.5).
     pub score_transform: ScoreTransform,
     pub score_temperature: f64,
+    /// Transform of the staleness counts into P_C, and its temperature beta_C (spec 3.5).
     pub staleness_transform: ScoreTransform,
     pub staleness_temperature: f64,
+    /// c, the weight of P_C in the mix (spec 3.5).
     pub staleness_coef: f64,
+    /// How P_S and P_C combine (spec 3.5).
     pub mix: LevelMix,
     /// k: the last k returns feed the score.
     pub score_window: u32,
@@ -309,6 +342,7 @@ pub struct ServiceConfig {
     pub transition_batch: u32,
     /// Warn when an actor's policy lags the learner's by more than this many versions.
     pub max_policy_lag: u64,
+    /// Listening ports; 0 = any free port.
     pub curriculum_port: u16,
     pub learner_port: u16,
     pub dashboard_port: u16,
@@ -317,6 +351,7 @@ pub struct ServiceConfig {
     pub stop_at_eval_success: Option<f64>,
 }
 
+/// How transitions and policy weights travel between actors and the learner.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Transport {
@@ -360,7 +395,11 @@ impl Default for EnvConfig {
 
 impl Default for EvalEnvConfig {
     fn default() -> Self {
-        Self { num_envs: 2, max_episode_steps: None, seed_offset: 1_000_000 }
+        Self {
+            num_envs: 2,
+            max_episode_steps: None,
+            seed_offset: 1_000_000,
+        }
     }
 }
 

@@ -1,0 +1,185 @@
+//! The curriculum as the server runs it: the reverse and forward curricula, the stage machine and
+//! one seeded random stream. `acquire` hands out resets and `report` applies finished episodes. The
+//! whole state, random stream included, serialises, so a restored snapshot continues exactly.
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rfcl_core::config::RunConfig;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::forward::{Forward, LevelSource};
+use crate::reverse::{DemoMeta, ReportEffect, Reverse};
+use crate::stage::{Stage, StageChange, StageMachine};
+
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum CurriculumError {
+    #[error("the curriculum needs at least one demo")]
+    NoDemos,
+    #[error("the forward curriculum has no levels (forward.num_seeds is 0 and no demo starts)")]
+    NoLevels,
+    #[error("invalid curriculum config: {0}")]
+    InvalidConfig(String),
+    #[error("unknown demo {demo} (there are {count})")]
+    UnknownDemo { demo: usize, count: usize },
+    #[error("unknown level {level} (there are {count})")]
+    UnknownLevel { level: usize, count: usize },
+    #[error("a {kind} assignment cannot be reported in stage {stage:?}")]
+    WrongStage { kind: &'static str, stage: Stage },
+    #[error("the curriculum is finished: stage 1 ended and train.stage_1_only is set")]
+    Finished,
+}
+
+/// Where an episode starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum AssignmentKind {
+    /// Stage 1: state `start_index` of demo `demo`, after resetting with the demo's reset arguments.
+    DemoState { demo: usize, start_index: usize },
+    /// Stage 2: forward-curriculum level `level`.
+    Level { level: usize, source: LevelSource },
+}
+
+/// One reset handed to an actor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Assignment {
+    pub kind: AssignmentKind,
+    /// Steps after which the episode is truncated (already capped by the env horizon).
+    pub time_limit: u32,
+    pub stage_epoch: u64,
+}
+
+/// What a finished episode reports to the curriculum.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeOutcome {
+    /// The success flag at the final step (stage 1 counts this, spec 2.6).
+    pub success_at_end: bool,
+    /// The episode's return (stage 2 scores this, spec 3.3).
+    pub episode_return: f64,
+}
+
+/// How a report was applied.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Applied {
+    /// The assignment belongs to an earlier stage epoch: ignored.
+    Stale,
+    Reverse(ReportEffect),
+    Forward {
+        level: usize,
+        score: f64,
+    },
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReportOutcome {
+    pub applied: Applied,
+    /// Set when this report ended stage 1.
+    pub stage_change: Option<StageChange>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Curriculum {
+    reverse: Reverse,
+    forward: Forward,
+    stages: StageMachine,
+    /// H: the env horizon, the time limit of every stage-2 episode.
+    horizon: u32,
+    rng: ChaCha8Rng,
+}
+
+impl Curriculum {
+    /// A fresh curriculum for `demos`, its random stream seeded with the experiment seed.
+    pub fn new(config: &RunConfig, demos: &[DemoMeta]) -> Result<Self, CurriculumError> {
+        let horizon = config.env.max_episode_steps;
+        Ok(Self {
+            reverse: Reverse::new(config.reverse.clone(), demos, horizon)?,
+            forward: Forward::new(config.forward.clone(), demos)?,
+            stages: StageMachine::new(&config.train)?,
+            horizon,
+            rng: ChaCha8Rng::seed_from_u64(config.seed),
+        })
+    }
+
+    /// The next reset: a demo state in stage 1, a level in stage 2.
+    pub fn acquire(&mut self) -> Result<Assignment, CurriculumError> {
+        let (kind, time_limit) = match self.stages.stage() {
+            Stage::Reverse => {
+                let choice = self.reverse.sample(&mut self.rng);
+                let kind = AssignmentKind::DemoState {
+                    demo: choice.demo,
+                    start_index: choice.start_index,
+                };
+                (kind, choice.time_limit)
+            }
+            Stage::Forward => {
+                let level = self.forward.sample(&mut self.rng);
+                let source = self.forward.levels()[level].source;
+                (AssignmentKind::Level { level, source }, self.horizon)
+            }
+            Stage::Finished => return Err(CurriculumError::Finished),
+        };
+        Ok(Assignment {
+            kind,
+            time_limit,
+            stage_epoch: self.stages.epoch(),
+        })
+    }
+
+    /// Applies the outcome of an episode run from `assignment`; `env_steps` is the run's env-step
+    /// count now, recorded if this report ends stage 1 (spec 2.7, checked after every report).
+    pub fn report(
+        &mut self,
+        assignment: &Assignment,
+        outcome: EpisodeOutcome,
+        env_steps: u64,
+    ) -> Result<ReportOutcome, CurriculumError> {
+        if assignment.stage_epoch != self.stages.epoch() {
+            return Ok(ReportOutcome {
+                applied: Applied::Stale,
+                stage_change: None,
+            });
+        }
+        let stage = self.stages.stage();
+        match (assignment.kind, stage) {
+            (AssignmentKind::DemoState { demo, start_index }, Stage::Reverse) => {
+                let effect = self
+                    .reverse
+                    .report(demo, start_index, outcome.success_at_end)?;
+                let stage_change = if self.reverse.stage_1_done() {
+                    self.stages.end_stage_1(env_steps)
+                } else {
+                    None
+                };
+                Ok(ReportOutcome {
+                    applied: Applied::Reverse(effect),
+                    stage_change,
+                })
+            }
+            (AssignmentKind::Level { level, .. }, Stage::Forward) => {
+                let score = self.forward.report(level, outcome.episode_return)?;
+                Ok(ReportOutcome {
+                    applied: Applied::Forward { level, score },
+                    stage_change: None,
+                })
+            }
+            (AssignmentKind::DemoState { .. }, _) => Err(CurriculumError::WrongStage {
+                kind: "demo-state",
+                stage,
+            }),
+            (AssignmentKind::Level { .. }, _) => Err(CurriculumError::WrongStage {
+                kind: "level",
+                stage,
+            }),
+        }
+    }
+
+    pub fn reverse(&self) -> &Reverse {
+        &self.reverse
+    }
+
+    pub fn forward(&self) -> &Forward {
+        &self.forward
+    }
+
+    pub fn stages(&self) -> &StageMachine {
+        &self.stages
+    }
+}

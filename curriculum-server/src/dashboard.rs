@@ -1,0 +1,573 @@
+//! The curriculum dashboard: one self-refreshing HTML page (no JavaScript build step, charts drawn
+//! server-side as SVG with plotters), the same data as JSON, and Prometheus text.
+//!
+//! Rendering is pure: [`DashboardView`] in, strings out. The service builds the view under its lock
+//! and renders outside it.
+use std::fmt::Write as _;
+
+use plotters::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Everything the dashboard shows; `/api/state` serves it as JSON.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct DashboardView {
+    pub run_name: String,
+    pub env_id: String,
+    pub stage: u32,
+    pub stage_epoch: u64,
+    /// Env steps reported by train episodes.
+    pub env_steps: u64,
+    pub stage_1_env_steps: Option<u64>,
+    pub episodes: u64,
+    pub episodes_per_s: f64,
+    pub open_leases: u64,
+    pub expired_leases: u64,
+    pub refused_reports: RefusedReports,
+    pub solved_frac: f64,
+    pub demos: Vec<DemoBar>,
+    pub levels: Vec<LevelRow>,
+    pub actors: Vec<ActorRow>,
+    pub evals: Vec<EvalPoint>,
+    pub history: Vec<ProgressPoint>,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RefusedReports {
+    pub duplicate: u64,
+    pub expired: u64,
+    pub unknown: u64,
+    pub epoch_mismatch: u64,
+    pub malformed: u64,
+}
+
+/// One demo's reverse-curriculum progress (spec 2).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DemoBar {
+    pub demo: u32,
+    /// Current start step t_i.
+    pub t: u32,
+    /// States kept, S_i.
+    pub states: u32,
+    /// Fraction of successes in the demo's frontier FIFO.
+    pub frontier_success_rate: f64,
+    pub solved: bool,
+}
+
+/// One forward-curriculum level (spec 3).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LevelRow {
+    pub level: u32,
+    /// "seed 12" or "demo 3 start".
+    pub label: String,
+    pub score: f64,
+    pub staleness: u64,
+    pub probability: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ActorRow {
+    pub actor_id: u32,
+    pub seconds_since_seen: f64,
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub open_leases: u64,
+}
+
+/// Eval outcomes of one policy version.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalPoint {
+    pub policy_version: u64,
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub success_at_end: f64,
+    pub success_once: f64,
+    pub mean_return: f64,
+}
+
+/// A sample of progress over time, taken by the service every few seconds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ProgressPoint {
+    pub wall_s: f64,
+    pub env_steps: u64,
+    pub stage: u32,
+    /// Mean of t_i / (S_i - 1): 1 at the start of stage 1, 0 when every demo starts from its beginning.
+    pub start_step_frac_avg: f64,
+    pub solved_frac: f64,
+    pub train_success_rate: f64,
+}
+
+const CHART_W: u32 = 640;
+
+fn chart_err<E: std::fmt::Debug>(e: E) -> String {
+    format!("<p class=err>chart failed: {e:?}</p>")
+}
+
+/// Horizontal bars, one per demo: the filled part is the part of the demo the curriculum has
+/// reached, (S_i - 1 - t_i) / (S_i - 1); solved demos are green.
+pub fn demo_bars_svg(demos: &[DemoBar]) -> String {
+    let height = 40 + 26 * demos.len().max(1) as u32;
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (CHART_W, height)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let n = demos.len().max(1) as i32;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0f64..1f64, (0..n).into_segmented())?;
+        chart
+            .configure_mesh()
+            .disable_y_mesh()
+            .x_desc("fraction of the demo reached (1 - t_i/(S_i-1))")
+            .y_label_formatter(&|v| match v {
+                SegmentValue::CenterOf(i) => demos
+                    .get(*i as usize)
+                    .map(|d| format!("demo {}", d.demo))
+                    .unwrap_or_default(),
+                _ => String::new(),
+            })
+            .draw()?;
+        chart.draw_series(demos.iter().enumerate().map(|(i, d)| {
+            let reached = if d.states > 1 {
+                1.0 - d.t as f64 / (d.states - 1) as f64
+            } else {
+                1.0
+            };
+            let color = if d.solved {
+                GREEN.mix(0.8)
+            } else {
+                BLUE.mix(0.6)
+            };
+            let i = i as i32;
+            Rectangle::new(
+                [
+                    (0.0, SegmentValue::Exact(i)),
+                    (reached, SegmentValue::Exact(i + 1)),
+                ],
+                color.filled(),
+            )
+        }))?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+/// Sampling probability per level, as bars (at most the 60 most likely levels are drawn).
+pub fn level_probabilities_svg(levels: &[LevelRow]) -> String {
+    let mut top: Vec<&LevelRow> = levels.iter().collect();
+    top.sort_by(|a, b| {
+        b.probability
+            .total_cmp(&a.probability)
+            .then(a.level.cmp(&b.level))
+    });
+    top.truncate(60);
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (CHART_W, 220)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let n = top.len().max(1) as i32;
+        let max_p = top.first().map(|l| l.probability).unwrap_or(1.0).max(1e-9);
+        let mut chart = ChartBuilder::on(&root)
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(50)
+            .build_cartesian_2d((0..n).into_segmented(), 0f64..max_p * 1.05)?;
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_desc("levels, most likely first")
+            .y_desc("P(level)")
+            .x_label_formatter(&|_| String::new())
+            .draw()?;
+        chart.draw_series(top.iter().enumerate().map(|(i, l)| {
+            let i = i as i32;
+            let color = match l.score as i64 {
+                3 => RED.mix(0.7),
+                2 => BLUE.mix(0.6),
+                _ => GREEN.mix(0.6),
+            };
+            Rectangle::new(
+                [
+                    (SegmentValue::Exact(i), 0.0),
+                    (SegmentValue::Exact(i + 1), l.probability),
+                ],
+                color.filled(),
+            )
+        }))?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+/// Curriculum progress and success rates against env steps.
+pub fn progress_svg(history: &[ProgressPoint], evals: &[EvalPoint]) -> String {
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (CHART_W, 260)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let max_x = history
+            .iter()
+            .map(|p| p.env_steps)
+            .chain(evals.iter().map(|e| e.env_steps))
+            .max()
+            .unwrap_or(1)
+            .max(1) as f64;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(40)
+            .build_cartesian_2d(0f64..max_x, 0f64..1.02f64)?;
+        chart.configure_mesh().x_desc("env steps").draw()?;
+        let series: [(&str, RGBColor, fn(&ProgressPoint) -> f64); 3] = [
+            ("start step frac (avg t_i/(S_i-1))", BLUE, |p| {
+                p.start_step_frac_avg
+            }),
+            ("demos solved", GREEN, |p| p.solved_frac),
+            ("train success", MAGENTA, |p| p.train_success_rate),
+        ];
+        for (label, color, f) in series {
+            chart
+                .draw_series(LineSeries::new(
+                    history.iter().map(|p| (p.env_steps as f64, f(p))),
+                    color.stroke_width(2),
+                ))?
+                .label(label)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
+                });
+        }
+        chart
+            .draw_series(LineSeries::new(
+                evals.iter().map(|e| (e.env_steps as f64, e.success_at_end)),
+                RED.stroke_width(2),
+            ))?
+            .label("eval success at end")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], RED.stroke_width(2)));
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// The dashboard page. It refreshes itself every `refresh_s` seconds with a meta tag.
+pub fn render_html(view: &DashboardView, refresh_s: u32) -> String {
+    let mut h = String::new();
+    let _ = write!(
+        h,
+        r#"<!doctype html><html><head><meta charset="utf-8"><meta http-equiv="refresh" content="{refresh_s}">
+<title>rfcl · {name}</title>
+<style>body{{font-family:sans-serif;margin:1.5em;color:#222}} table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#f4f4f4}}
+.kv span{{display:inline-block;margin-right:2em}} .solved{{color:#1a7f37;font-weight:bold}} .err{{color:#b00}}</style>
+</head><body>
+<h1>rfcl curriculum · {name} <small>({env})</small></h1>
+<p class="kv"><span id="stage">stage <b>{stage}</b> (epoch {epoch})</span><span>env steps <b>{steps}</b></span>
+<span>episodes {episodes} ({eps:.1}/s)</span><span>open leases {open}</span><span>expired leases {expired}</span>
+<span>demos solved {solved:.0}%</span></p>
+<p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}</span></p>
+"#,
+        name = esc(&view.run_name),
+        env = esc(&view.env_id),
+        stage = view.stage,
+        epoch = view.stage_epoch,
+        steps = view.env_steps,
+        episodes = view.episodes,
+        eps = view.episodes_per_s,
+        open = view.open_leases,
+        expired = view.expired_leases,
+        solved = view.solved_frac * 100.0,
+        dup = view.refused_reports.duplicate,
+        rexp = view.refused_reports.expired,
+        unk = view.refused_reports.unknown,
+        epm = view.refused_reports.epoch_mismatch,
+        mal = view.refused_reports.malformed,
+    );
+    if let Some(s1) = view.stage_1_env_steps {
+        let _ = writeln!(h, "<p>stage 1 ended after <b>{s1}</b> env steps</p>");
+    }
+    h.push_str("<h2>Reverse curriculum: demos</h2>\n");
+    h.push_str(&demo_bars_svg(&view.demos));
+    h.push_str("\n<table id=\"demos\"><tr><th>demo</th><th>t_i</th><th>S_i</th><th>t_i / S_i</th><th>frontier success</th><th>solved</th></tr>\n");
+    for d in &view.demos {
+        let _ = writeln!(
+            h,
+            "<tr class=\"demo-bar\"><td>{}</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.2}</td><td>{}</td></tr>",
+            d.demo,
+            d.t,
+            d.states,
+            d.t as f64 / d.states.max(1) as f64,
+            d.frontier_success_rate,
+            if d.solved { "<span class=solved>✔</span>" } else { "" }
+        );
+    }
+    h.push_str("</table>\n<h2>Progress</h2>\n");
+    h.push_str(&progress_svg(&view.history, &view.evals));
+    if !view.levels.is_empty() {
+        h.push_str("\n<h2>Forward curriculum: level sampling</h2>\n");
+        h.push_str(&level_probabilities_svg(&view.levels));
+        let mut top: Vec<&LevelRow> = view.levels.iter().collect();
+        top.sort_by(|a, b| b.probability.total_cmp(&a.probability));
+        h.push_str("\n<table id=\"levels\"><tr><th>level</th><th>score</th><th>staleness</th><th>P</th></tr>\n");
+        for l in top.iter().take(20) {
+            let _ = writeln!(
+                h,
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.4}</td></tr>",
+                esc(&l.label),
+                l.score,
+                l.staleness,
+                l.probability
+            );
+        }
+        let _ = writeln!(
+            h,
+            "</table><p>{} levels in all; the 20 most likely shown.</p>",
+            view.levels.len()
+        );
+    }
+    if !view.evals.is_empty() {
+        h.push_str("<h2>Evaluation</h2>\n<table><tr><th>policy version</th><th>env steps</th><th>episodes</th><th>success at end</th><th>success once</th><th>return</th></tr>\n");
+        for e in view.evals.iter().rev().take(10) {
+            let _ = writeln!(
+                h,
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td><td>{:.1}</td></tr>",
+                e.policy_version, e.env_steps, e.episodes, e.success_at_end, e.success_once, e.mean_return
+            );
+        }
+        h.push_str("</table>\n");
+    }
+    h.push_str("<h2>Actors</h2>\n<table id=\"actors\"><tr><th>actor</th><th>last seen</th><th>env steps</th><th>episodes</th><th>open leases</th></tr>\n");
+    for a in &view.actors {
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td>{:.1} s ago</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            a.actor_id, a.seconds_since_seen, a.env_steps, a.episodes, a.open_leases
+        );
+    }
+    h.push_str("</table>\n<p><a href=\"/api/state\">JSON</a> · <a href=\"/metrics\">metrics</a></p></body></html>\n");
+    h
+}
+
+/// Prometheus text exposition of the view, with `rfcl_curriculum_` names. Built per scrape from the
+/// same view as the page, so the two never disagree.
+pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
+    use prometheus_client::encoding::text::encode;
+    use prometheus_client::metrics::counter::Counter;
+    use prometheus_client::metrics::family::Family;
+    use prometheus_client::metrics::gauge::Gauge;
+    use prometheus_client::registry::Registry;
+
+    fn counter(registry: &mut Registry, name: &str, help: &str, value: u64) {
+        let c: Counter = Counter::default();
+        c.inc_by(value);
+        registry.register(name, help, c);
+    }
+    fn gauge(registry: &mut Registry, name: &str, help: &str, value: f64) {
+        let g: Gauge<f64, std::sync::atomic::AtomicU64> = Gauge::default();
+        g.set(value);
+        registry.register(name, help, g);
+    }
+
+    let mut r = Registry::with_prefix("rfcl_curriculum");
+    gauge(
+        &mut r,
+        "stage",
+        "Current stage (1 reverse, 2 forward)",
+        view.stage as f64,
+    );
+    gauge(
+        &mut r,
+        "stage_epoch",
+        "Stage epoch, bumped on every stage change",
+        view.stage_epoch as f64,
+    );
+    counter(
+        &mut r,
+        "env_steps",
+        "Env steps of reported train episodes",
+        view.env_steps,
+    );
+    counter(&mut r, "episodes", "Reported train episodes", view.episodes);
+    gauge(
+        &mut r,
+        "episodes_per_second",
+        "Reported train episodes per second (recent)",
+        view.episodes_per_s,
+    );
+    counter(
+        &mut r,
+        "leases_granted",
+        "Reset leases handed out",
+        leases_granted,
+    );
+    gauge(
+        &mut r,
+        "leases_open",
+        "Reset leases handed out and not yet reported",
+        view.open_leases as f64,
+    );
+    counter(
+        &mut r,
+        "leases_expired",
+        "Leases that expired unreported",
+        view.expired_leases,
+    );
+    gauge(
+        &mut r,
+        "solved_fraction",
+        "Fraction of demos reverse-solved (spec 2.7)",
+        view.solved_frac,
+    );
+    let refused = Family::<Vec<(String, String)>, Counter>::default();
+    let rr = view.refused_reports;
+    for (reason, v) in [
+        ("duplicate", rr.duplicate),
+        ("expired", rr.expired),
+        ("unknown", rr.unknown),
+        ("epoch_mismatch", rr.epoch_mismatch),
+        ("malformed", rr.malformed),
+    ] {
+        refused
+            .get_or_create(&vec![("reason".into(), reason.into())])
+            .inc_by(v);
+    }
+    r.register(
+        "reports_refused",
+        "Reports that changed nothing, by reason",
+        refused,
+    );
+    let start =
+        Family::<Vec<(String, String)>, Gauge<f64, std::sync::atomic::AtomicU64>>::default();
+    let solved = Family::<Vec<(String, String)>, Gauge>::default();
+    for d in &view.demos {
+        let labels = vec![("demo".to_string(), d.demo.to_string())];
+        start
+            .get_or_create(&labels)
+            .set(d.t as f64 / (d.states.max(2) - 1) as f64);
+        solved.get_or_create(&labels).set(d.solved as i64);
+    }
+    r.register(
+        "demo_start_step_fraction",
+        "t_i / (S_i - 1) per demo",
+        start,
+    );
+    r.register("demo_solved", "1 when the demo is reverse-solved", solved);
+    let mut out = String::new();
+    encode(&mut out, &r).expect("writing to a String cannot fail");
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn view() -> DashboardView {
+        DashboardView {
+            run_name: "test <run>".into(),
+            env_id: "PointMaze-v0".into(),
+            stage: 1,
+            demos: vec![
+                DemoBar {
+                    demo: 0,
+                    t: 10,
+                    states: 41,
+                    frontier_success_rate: 0.5,
+                    solved: false,
+                },
+                DemoBar {
+                    demo: 1,
+                    t: 0,
+                    states: 30,
+                    frontier_success_rate: 1.0,
+                    solved: true,
+                },
+            ],
+            history: vec![
+                ProgressPoint {
+                    wall_s: 0.0,
+                    env_steps: 0,
+                    stage: 1,
+                    start_step_frac_avg: 1.0,
+                    solved_frac: 0.0,
+                    train_success_rate: 0.0,
+                },
+                ProgressPoint {
+                    wall_s: 5.0,
+                    env_steps: 800,
+                    stage: 1,
+                    start_step_frac_avg: 0.6,
+                    solved_frac: 0.5,
+                    train_success_rate: 0.4,
+                },
+            ],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn the_page_has_one_bar_row_per_demo_and_escapes_names() {
+        let html = render_html(&view(), 2);
+        assert_eq!(html.matches("class=\"demo-bar\"").count(), 2);
+        assert!(html.contains("test &lt;run&gt;"));
+        assert!(html.contains("http-equiv=\"refresh\" content=\"2\""));
+        assert!(!html.contains("chart failed"));
+    }
+
+    #[test]
+    fn demo_bars_are_svg_rectangles() {
+        let svg = demo_bars_svg(&view().demos);
+        assert!(svg.starts_with("<svg"));
+        // Background + plot area + one filled rectangle per demo at least.
+        assert!(svg.matches("<rect").count() >= 3, "{svg}");
+        assert!(svg.contains("demo 1"));
+    }
+
+    #[test]
+    fn metrics_use_rfcl_names_and_labels() {
+        let mut v = view();
+        v.refused_reports.duplicate = 3;
+        let text = metrics_text(&v, 42);
+        assert!(
+            text.contains("rfcl_curriculum_leases_granted_total 42"),
+            "{text}"
+        );
+        assert!(
+            text.contains("rfcl_curriculum_reports_refused_total{reason=\"duplicate\"} 3"),
+            "{text}"
+        );
+        assert!(
+            text.contains("rfcl_curriculum_demo_solved{demo=\"1\"} 1"),
+            "{text}"
+        );
+        assert!(text.ends_with("# EOF\n"));
+    }
+
+    #[test]
+    fn empty_views_render() {
+        let html = render_html(&DashboardView::default(), 5);
+        assert!(html.contains("<svg"));
+        assert!(level_probabilities_svg(&[]).starts_with("<svg"));
+    }
+}

@@ -1,0 +1,612 @@
+//! The curriculum service: the pure [`Curriculum`] behind a lock, a lease table that makes reports
+//! exactly-once, counters for the dashboard, and the tonic implementation of `rfcl.v1.Curriculum`.
+//!
+//! Everything that changes curriculum state happens in [`ServerState`] under one mutex: this process
+//! is the single writer. Wire types are converted once, at the top of each RPC.
+use std::collections::{BTreeMap, VecDeque};
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use rfcl_core::config::RunConfig;
+use rfcl_core::demo::DemoSet;
+use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
+use rfcl_proto::v1;
+use serde::{Deserialize, Serialize};
+use tokio::sync::watch;
+use tonic::{Request, Response, Status};
+
+use crate::dashboard::{
+    ActorRow, DashboardView, DemoBar, EvalPoint, LevelRow, ProgressPoint, RefusedReports,
+};
+use crate::leases::{LeaseTable, ReportRefusal};
+use crate::{
+    Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, DemoMeta, EpisodeOutcome,
+    LevelSource, Stage,
+};
+
+/// Seconds since the Unix epoch: lease times survive a restart from a snapshot.
+pub fn unix_now() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+/// What the server needs of each demo to build leases: its reset states and reset arguments.
+#[derive(Debug, Clone)]
+pub struct DemoResets {
+    pub state_dim: usize,
+    /// Per demo, the flat states [S_i_total, state_dim].
+    pub states: Vec<Vec<f32>>,
+    pub reset: Vec<ResetArgs>,
+}
+
+impl DemoResets {
+    pub fn from_demos(demos: &DemoSet) -> Self {
+        DemoResets {
+            state_dim: demos.state_dim,
+            states: demos.demos.iter().map(|d| d.env_states.clone()).collect(),
+            reset: demos
+                .demos
+                .iter()
+                .map(|d| ResetArgs {
+                    seed: d.reset.seed,
+                    options: d.reset.options.as_object().cloned().unwrap_or_default(),
+                })
+                .collect(),
+        }
+    }
+
+    fn state(&self, demo: usize, index: usize) -> Vec<f32> {
+        self.states[demo][index * self.state_dim..(index + 1) * self.state_dim].to_vec()
+    }
+}
+
+/// The curricula's view of the demos.
+pub fn demo_metas(demos: &DemoSet) -> Vec<DemoMeta> {
+    demos
+        .demos
+        .iter()
+        .map(|d| DemoMeta {
+            success: d.success.clone(),
+            reset_seed: d.reset.seed,
+        })
+        .collect()
+}
+
+/// What a lease was handed out for.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum Granted {
+    Train(Assignment),
+    Eval { seed: u64 },
+}
+
+/// Eval outcomes of one policy version (spec 5.7), keyed by version and env steps.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct EvalAggregate {
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub success_at_end: u64,
+    pub success_once: u64,
+    pub return_sum: f64,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct ActorStats {
+    pub last_seen: f64,
+    pub env_steps: u64,
+    pub episodes: u64,
+}
+
+/// Counters and history: everything the dashboard shows beyond the curriculum itself.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Stats {
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub malformed_reports: u64,
+    pub next_eval_seed: u64,
+    /// success_at_end of the last 100 train episodes.
+    pub recent_success: VecDeque<bool>,
+    pub evals: BTreeMap<u64, EvalAggregate>,
+    pub actors: BTreeMap<u32, ActorStats>,
+    pub history: Vec<ProgressPoint>,
+    pub started_at: f64,
+    /// (time, episodes) of the previous history sample, for episodes/s.
+    pub last_sample: (f64, u64),
+    pub episodes_per_s: f64,
+}
+
+const RECENT_EPISODES: usize = 100;
+const MAX_HISTORY: usize = 2000;
+
+/// The whole mutable state of the server; it is also what a snapshot holds.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ServerState {
+    pub curriculum: Curriculum,
+    pub leases: LeaseTable<Granted>,
+    pub stats: Stats,
+    /// Reports applied since the last snapshot.
+    #[serde(skip)]
+    pub reports_since_snapshot: u64,
+}
+
+/// A report's effect, for the RPC answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReportResult {
+    pub applied: bool,
+    pub stage_event: Option<v1::StageEvent>,
+}
+
+/// Why a report changed nothing.
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    #[error(transparent)]
+    Refused(#[from] ReportRefusal),
+    #[error("lease {lease_id} is from stage epoch {lease_epoch}, which ended; the stage epoch is now {now}")]
+    StageEpochOver {
+        lease_id: u64,
+        lease_epoch: u64,
+        now: u64,
+    },
+    #[error(transparent)]
+    Curriculum(#[from] CurriculumError),
+}
+
+impl From<ReportError> for Status {
+    fn from(err: ReportError) -> Status {
+        match &err {
+            ReportError::Refused(ReportRefusal::Duplicate(_)) => {
+                Status::already_exists(err.to_string())
+            }
+            ReportError::Refused(ReportRefusal::Unknown(_)) => Status::not_found(err.to_string()),
+            ReportError::Refused(_) | ReportError::StageEpochOver { .. } => {
+                Status::failed_precondition(err.to_string())
+            }
+            ReportError::Curriculum(_) => Status::internal(err.to_string()),
+        }
+    }
+}
+
+impl ServerState {
+    pub fn new(curriculum: Curriculum, now: f64) -> Self {
+        let stats = Stats {
+            started_at: now,
+            last_sample: (now, 0),
+            ..Default::default()
+        };
+        let mut state = ServerState {
+            curriculum,
+            leases: LeaseTable::new(1 << 20),
+            stats,
+            reports_since_snapshot: 0,
+        };
+        state.sample_history(now);
+        state
+    }
+
+    pub fn stage_event(&self) -> v1::StageEvent {
+        let stages = self.curriculum.stages();
+        v1::StageEvent {
+            stage: stage_number(stages.stage()),
+            stage_epoch: stages.epoch(),
+            at_env_steps: stages.stage_1_end_env_steps().unwrap_or(0),
+            finished: stages.stage() == Stage::Finished,
+        }
+    }
+
+    /// Hands out a lease: a curriculum reset for train actors, a held-out seed for eval actors.
+    pub fn acquire(
+        &mut self,
+        req: AcquireRequest,
+        cfg: &RunConfig,
+        demos: &DemoResets,
+        now: f64,
+    ) -> Result<ResetLease, CurriculumError> {
+        self.stats.actors.entry(req.actor_id).or_default().last_seen = now;
+        let epoch = self.curriculum.stages().epoch();
+        let stage = stage_number(self.curriculum.stages().stage());
+        if req.eval {
+            let seed = cfg.eval_env.seed_offset + self.stats.next_eval_seed;
+            self.stats.next_eval_seed += 1;
+            let grant = self
+                .leases
+                .grant(req.actor_id, epoch, now, Granted::Eval { seed });
+            return Ok(ResetLease {
+                lease_id: grant.lease_id,
+                kind: LeaseKind::Eval,
+                demo_id: 0,
+                start_index: 0,
+                env_state: Vec::new(),
+                reset: ResetArgs {
+                    seed: Some(seed),
+                    options: Default::default(),
+                },
+                time_limit: cfg
+                    .eval_env
+                    .max_episode_steps
+                    .unwrap_or(cfg.env.max_episode_steps),
+                stage,
+                stage_epoch: epoch,
+                level: 0,
+            });
+        }
+        let assignment = self.curriculum.acquire()?;
+        let lease_id = self
+            .leases
+            .grant(req.actor_id, epoch, now, Granted::Train(assignment))
+            .lease_id;
+        let mut lease = ResetLease {
+            lease_id,
+            kind: LeaseKind::DemoState,
+            demo_id: 0,
+            start_index: 0,
+            env_state: Vec::new(),
+            reset: ResetArgs::default(),
+            time_limit: assignment.time_limit,
+            stage,
+            stage_epoch: epoch,
+            level: 0,
+        };
+        match assignment.kind {
+            AssignmentKind::DemoState { demo, start_index } => {
+                lease.demo_id = demo as u32;
+                lease.start_index = start_index as u32;
+                lease.env_state = demos.state(demo, start_index);
+                lease.reset = demos.reset[demo].clone();
+            }
+            AssignmentKind::Level { level, source } => {
+                lease.kind = LeaseKind::Level;
+                lease.level = level as u32;
+                match source {
+                    LevelSource::Seed(seed) => lease.reset.seed = Some(seed),
+                    LevelSource::DemoStart { demo, .. } => {
+                        lease.demo_id = demo as u32;
+                        lease.env_state = demos.state(demo, 0);
+                        lease.reset = demos.reset[demo].clone();
+                    }
+                }
+            }
+        }
+        Ok(lease)
+    }
+
+    /// Applies a report exactly once. A refused report changes nothing but its counter.
+    pub fn report(
+        &mut self,
+        report: &EpisodeReport,
+        now: f64,
+    ) -> Result<ReportResult, ReportError> {
+        let actor = self.stats.actors.entry(report.actor_id).or_default();
+        actor.last_seen = now;
+        actor.env_steps = actor.env_steps.max(report.actor_env_steps);
+        let grant = self
+            .leases
+            .take_for_report(report.lease_id, report.stage_epoch)?;
+        self.stats
+            .actors
+            .entry(report.actor_id)
+            .or_default()
+            .episodes += 1;
+        self.reports_since_snapshot += 1;
+        let assignment = match grant.assignment {
+            Granted::Eval { .. } => {
+                let e = self.stats.evals.entry(report.policy_version).or_default();
+                e.env_steps = e.env_steps.max(report.policy_env_steps);
+                e.episodes += 1;
+                e.success_at_end += report.success_at_end as u64;
+                e.success_once += report.success_once as u64;
+                e.return_sum += report.episode_return;
+                return Ok(ReportResult {
+                    applied: true,
+                    stage_event: None,
+                });
+            }
+            Granted::Train(a) => a,
+        };
+        let now_epoch = self.curriculum.stages().epoch();
+        if assignment.stage_epoch != now_epoch {
+            self.leases.refusals.epoch_mismatch += 1;
+            return Err(ReportError::StageEpochOver {
+                lease_id: report.lease_id,
+                lease_epoch: assignment.stage_epoch,
+                now: now_epoch,
+            });
+        }
+        self.stats.env_steps += report.length as u64;
+        self.stats.episodes += 1;
+        self.stats.recent_success.push_back(report.success_at_end);
+        if self.stats.recent_success.len() > RECENT_EPISODES {
+            self.stats.recent_success.pop_front();
+        }
+        let outcome = EpisodeOutcome {
+            success_at_end: report.success_at_end,
+            episode_return: report.episode_return,
+        };
+        let applied = self
+            .curriculum
+            .report(&assignment, outcome, self.stats.env_steps)?;
+        debug_assert!(
+            !matches!(applied.applied, Applied::Stale),
+            "epoch checked above"
+        );
+        Ok(ReportResult {
+            applied: true,
+            stage_event: applied.stage_change.map(|_| self.stage_event()),
+        })
+    }
+
+    /// Takes a progress sample for the dashboard's chart (bounded: halves its resolution when full).
+    pub fn sample_history(&mut self, now: f64) {
+        let (t0, e0) = self.stats.last_sample;
+        if now > t0 {
+            self.stats.episodes_per_s = (self.stats.episodes - e0) as f64 / (now - t0);
+        }
+        self.stats.last_sample = (now, self.stats.episodes);
+        let reverse = self.curriculum.reverse();
+        let point = ProgressPoint {
+            wall_s: now - self.stats.started_at,
+            env_steps: self.stats.env_steps,
+            stage: stage_number(self.curriculum.stages().stage()),
+            start_step_frac_avg: reverse.start_step_frac_avg(),
+            solved_frac: reverse.solved_frac(),
+            train_success_rate: self.train_success_rate(),
+        };
+        self.stats.history.push(point);
+        if self.stats.history.len() > MAX_HISTORY {
+            let kept: Vec<_> = self.stats.history.iter().copied().step_by(2).collect();
+            self.stats.history = kept;
+        }
+    }
+
+    fn train_success_rate(&self) -> f64 {
+        let r = &self.stats.recent_success;
+        if r.is_empty() {
+            0.0
+        } else {
+            r.iter().filter(|s| **s).count() as f64 / r.len() as f64
+        }
+    }
+
+    /// The dashboard's view of this state.
+    pub fn view(&self, run_name: &str, env_id: &str, now: f64) -> DashboardView {
+        let reverse = self.curriculum.reverse();
+        let forward = self.curriculum.forward();
+        let stages = self.curriculum.stages();
+        let demos = reverse
+            .demos()
+            .iter()
+            .enumerate()
+            .map(|(i, d)| DemoBar {
+                demo: i as u32,
+                t: d.start_step as u32,
+                states: d.num_states as u32,
+                frontier_success_rate: d.frontier_success_rate(),
+                solved: d.solved,
+            })
+            .collect();
+        let levels = if stages.stage() == Stage::Forward {
+            let probs = forward.probabilities();
+            forward
+                .levels()
+                .iter()
+                .zip(probs)
+                .enumerate()
+                .map(|(i, (l, p))| LevelRow {
+                    level: i as u32,
+                    label: match l.source {
+                        LevelSource::Seed(s) => format!("seed {s}"),
+                        LevelSource::DemoStart { demo, .. } => format!("demo {demo} start"),
+                    },
+                    score: l.score,
+                    staleness: l.staleness,
+                    probability: p,
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let mut open_per_actor: BTreeMap<u32, u64> = BTreeMap::new();
+        for g in self.leases.open_leases() {
+            *open_per_actor.entry(g.actor_id).or_default() += 1;
+        }
+        let actors = self
+            .stats
+            .actors
+            .iter()
+            .map(|(id, a)| ActorRow {
+                actor_id: *id,
+                seconds_since_seen: (now - a.last_seen).max(0.0),
+                env_steps: a.env_steps,
+                episodes: a.episodes,
+                open_leases: open_per_actor.get(id).copied().unwrap_or(0),
+            })
+            .collect();
+        let evals = self
+            .stats
+            .evals
+            .iter()
+            .map(|(v, e)| EvalPoint {
+                policy_version: *v,
+                env_steps: e.env_steps,
+                episodes: e.episodes,
+                success_at_end: e.success_at_end as f64 / e.episodes.max(1) as f64,
+                success_once: e.success_once as f64 / e.episodes.max(1) as f64,
+                mean_return: e.return_sum / e.episodes.max(1) as f64,
+            })
+            .collect();
+        let r = self.leases.refusals;
+        DashboardView {
+            run_name: run_name.to_string(),
+            env_id: env_id.to_string(),
+            stage: stage_number(stages.stage()),
+            stage_epoch: stages.epoch(),
+            env_steps: self.stats.env_steps,
+            stage_1_env_steps: stages.stage_1_end_env_steps(),
+            episodes: self.stats.episodes,
+            episodes_per_s: self.stats.episodes_per_s,
+            open_leases: self.leases.open_count() as u64,
+            expired_leases: self.leases.expired_total,
+            refused_reports: RefusedReports {
+                duplicate: r.duplicate,
+                expired: r.expired,
+                unknown: r.unknown,
+                epoch_mismatch: r.epoch_mismatch,
+                malformed: self.stats.malformed_reports,
+            },
+            solved_frac: reverse.solved_frac(),
+            demos,
+            levels,
+            actors,
+            evals,
+            history: self.stats.history.clone(),
+        }
+    }
+}
+
+/// Stage number on the wire: 1 (reverse; also after it finished under stage_1_only), 2 (forward).
+pub fn stage_number(stage: Stage) -> u32 {
+    match stage {
+        Stage::Reverse | Stage::Finished => 1,
+        Stage::Forward => 2,
+    }
+}
+
+/// Shared handles of a running server.
+#[derive(Clone)]
+pub struct Shared {
+    pub state: Arc<Mutex<ServerState>>,
+    pub cfg: Arc<RunConfig>,
+    pub demos: Arc<DemoResets>,
+    pub stage_tx: Arc<watch::Sender<v1::StageEvent>>,
+    /// Signalled when `snapshot_every_reports` reports have been applied since the last snapshot.
+    pub snapshot_due: Arc<tokio::sync::Notify>,
+}
+
+impl Shared {
+    pub fn new(state: ServerState, cfg: RunConfig, demos: DemoResets) -> Self {
+        let (stage_tx, _) = watch::channel(state.stage_event());
+        Shared {
+            state: Arc::new(Mutex::new(state)),
+            cfg: Arc::new(cfg),
+            demos: Arc::new(demos),
+            stage_tx: Arc::new(stage_tx),
+            snapshot_due: Arc::new(tokio::sync::Notify::new()),
+        }
+    }
+
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, ServerState> {
+        self.state
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    pub fn view(&self) -> DashboardView {
+        let now = unix_now();
+        self.lock().view(&self.cfg.name, &self.cfg.env.env_id, now)
+    }
+}
+
+/// The tonic service.
+pub struct CurriculumService {
+    pub shared: Shared,
+}
+
+type StageStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<v1::StageEvent, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl v1::curriculum_server::Curriculum for CurriculumService {
+    async fn acquire(
+        &self,
+        request: Request<v1::AcquireRequest>,
+    ) -> Result<Response<v1::ResetLease>, Status> {
+        let req = AcquireRequest::from(request.into_inner());
+        let lease = {
+            let mut state = self.shared.lock();
+            state.acquire(req, &self.shared.cfg, &self.shared.demos, unix_now())
+        };
+        match lease {
+            Ok(lease) => Ok(Response::new(lease.into())),
+            Err(CurriculumError::Finished) => Err(Status::failed_precondition(
+                CurriculumError::Finished.to_string(),
+            )),
+            Err(e) => Err(Status::internal(e.to_string())),
+        }
+    }
+
+    async fn report(
+        &self,
+        request: Request<v1::EpisodeReport>,
+    ) -> Result<Response<v1::ReportAck>, Status> {
+        let report = match EpisodeReport::try_from(request.into_inner()) {
+            Ok(r) => r,
+            Err(e) => {
+                self.shared.lock().stats.malformed_reports += 1;
+                return Err(e.into());
+            }
+        };
+        let (result, event, snapshot_due) = {
+            let mut state = self.shared.lock();
+            let result = state.report(&report, unix_now());
+            let due =
+                state.reports_since_snapshot >= self.shared.cfg.service.snapshot_every_reports;
+            (result, state.stage_event(), due)
+        };
+        if snapshot_due {
+            self.shared.snapshot_due.notify_one();
+        }
+        match result {
+            Ok(r) => {
+                if let Some(ev) = r.stage_event {
+                    tracing::info!(
+                        stage = ev.stage,
+                        epoch = ev.stage_epoch,
+                        env_steps = ev.at_env_steps,
+                        "stage change"
+                    );
+                    self.shared.stage_tx.send_replace(ev);
+                }
+                Ok(Response::new(v1::ReportAck {
+                    applied: r.applied,
+                    stage: event.stage,
+                    stage_epoch: event.stage_epoch,
+                }))
+            }
+            // A repeated report is acknowledged and changes nothing (exactly-once).
+            Err(ReportError::Refused(ReportRefusal::Duplicate(_))) => {
+                Ok(Response::new(v1::ReportAck {
+                    applied: false,
+                    stage: event.stage,
+                    stage_epoch: event.stage_epoch,
+                }))
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    type WatchStageStream = StageStream;
+
+    async fn watch_stage(
+        &self,
+        _: Request<v1::WatchStageRequest>,
+    ) -> Result<Response<StageStream>, Status> {
+        let rx = self.shared.stage_tx.subscribe();
+        let stream = tokio_stream::wrappers::WatchStream::new(rx);
+        Ok(Response::new(Box::pin(tokio_stream::StreamExt::map(
+            stream, Ok,
+        ))))
+    }
+
+    async fn get_state(
+        &self,
+        _: Request<v1::GetStateRequest>,
+    ) -> Result<Response<v1::CurriculumState>, Status> {
+        let view = self.shared.view();
+        let json = serde_json::to_string(&view).map_err(|e| Status::internal(e.to_string()))?;
+        Ok(Response::new(v1::CurriculumState {
+            json,
+            stage: view.stage,
+            stage_epoch: view.stage_epoch,
+        }))
+    }
+}

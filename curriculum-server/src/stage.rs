@@ -1,0 +1,147 @@
+//! The stage machine (spec 2.7, 4): stage 1 (reverse curriculum) until the reverse curriculum is
+//! done, then stage 2 (forward curriculum), or the end of the run with `stage_1_only`. Every change
+//! bumps the stage epoch.
+use rfcl_core::config::TrainConfig;
+use serde::{Deserialize, Serialize};
+
+use crate::CurriculumError;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Stage {
+    /// Stage 1: resets to demo states (spec 2).
+    Reverse,
+    /// Stage 2: resets to levels (spec 3).
+    Forward,
+    /// Stage 1 ended under `stage_1_only`: nothing more to hand out.
+    Finished,
+}
+
+/// A stage change, as announced to the learner and the actors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StageChange {
+    pub from: Stage,
+    pub to: Stage,
+    /// The new stage epoch.
+    pub epoch: u64,
+    /// Env steps (over the whole run) when the change happened.
+    pub env_steps: u64,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StageMachine {
+    stage: Stage,
+    epoch: u64,
+    stage_1_only: bool,
+    stage_1_end_env_steps: Option<u64>,
+}
+
+impl StageMachine {
+    /// Starts in stage 1, or directly in stage 2 with `stage_2_only` (stage 1 then ended at step 0).
+    pub fn new(train: &TrainConfig) -> Result<Self, CurriculumError> {
+        if train.stage_1_only && train.stage_2_only {
+            return Err(CurriculumError::InvalidConfig(
+                "train.stage_1_only and train.stage_2_only exclude each other".into(),
+            ));
+        }
+        let (stage, stage_1_end_env_steps) = if train.stage_2_only {
+            (Stage::Forward, Some(0))
+        } else {
+            (Stage::Reverse, None)
+        };
+        Ok(Self {
+            stage,
+            epoch: 0,
+            stage_1_only: train.stage_1_only,
+            stage_1_end_env_steps,
+        })
+    }
+
+    pub fn stage(&self) -> Stage {
+        self.stage
+    }
+
+    /// Increases by one on every stage change; starts at 0.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Env steps at which stage 1 ended (`train_stats/stage_1_steps`), once it has.
+    pub fn stage_1_end_env_steps(&self) -> Option<u64> {
+        self.stage_1_end_env_steps
+    }
+
+    /// Ends stage 1 at `env_steps` (spec 2.7, 4): to stage 2, or to the end with `stage_1_only`.
+    /// Does nothing outside stage 1.
+    pub fn end_stage_1(&mut self, env_steps: u64) -> Option<StageChange> {
+        if self.stage != Stage::Reverse {
+            return None;
+        }
+        let to = if self.stage_1_only {
+            Stage::Finished
+        } else {
+            Stage::Forward
+        };
+        self.stage = to;
+        self.epoch += 1;
+        self.stage_1_end_env_steps = Some(env_steps);
+        Some(StageChange {
+            from: Stage::Reverse,
+            to,
+            epoch: self.epoch,
+            env_steps,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stage_1_then_stage_2_once() {
+        let mut stages = StageMachine::new(&TrainConfig::default()).unwrap();
+        assert_eq!((stages.stage(), stages.epoch()), (Stage::Reverse, 0));
+        assert_eq!(stages.stage_1_end_env_steps(), None);
+        assert_eq!(
+            stages.end_stage_1(1234),
+            Some(StageChange {
+                from: Stage::Reverse,
+                to: Stage::Forward,
+                epoch: 1,
+                env_steps: 1234
+            })
+        );
+        assert_eq!(stages.end_stage_1(2000), None);
+        assert_eq!((stages.stage(), stages.epoch()), (Stage::Forward, 1));
+        assert_eq!(stages.stage_1_end_env_steps(), Some(1234));
+    }
+
+    #[test]
+    fn stage_only_options() {
+        let only_2 = TrainConfig {
+            stage_2_only: true,
+            ..TrainConfig::default()
+        };
+        let mut stages = StageMachine::new(&only_2).unwrap();
+        assert_eq!(stages.stage(), Stage::Forward);
+        assert_eq!(stages.stage_1_end_env_steps(), Some(0));
+        assert_eq!(stages.end_stage_1(10), None);
+
+        let only_1 = TrainConfig {
+            stage_1_only: true,
+            ..TrainConfig::default()
+        };
+        let mut stages = StageMachine::new(&only_1).unwrap();
+        assert_eq!(stages.end_stage_1(10).map(|c| c.to), Some(Stage::Finished));
+        assert_eq!(stages.epoch(), 1);
+
+        let both = TrainConfig {
+            stage_1_only: true,
+            ..only_2
+        };
+        assert!(matches!(
+            StageMachine::new(&both),
+            Err(CurriculumError::InvalidConfig(_))
+        ));
+    }
+}

@@ -1,0 +1,162 @@
+//! The whole curriculum through `acquire` / `report`: stage 1 to stage 2, stale reports, the
+//! stage-only options.
+use rfcl_core::config::RunConfig;
+use rfcl_curriculum::{
+    Applied, AssignmentKind, Curriculum, CurriculumError, DemoMeta, EpisodeOutcome, LevelSource,
+    Stage,
+};
+
+const SUCCESS: EpisodeOutcome = EpisodeOutcome {
+    success_at_end: true,
+    episode_return: 1.0,
+};
+
+/// `n` demos of 12 actions, the last 3 successful, reset with seeds 100, 101, ...
+fn demos(n: u64) -> Vec<DemoMeta> {
+    (0..n)
+        .map(|i| DemoMeta {
+            success: (0..12).map(|t| t >= 9).collect(),
+            reset_seed: Some(100 + i),
+        })
+        .collect()
+}
+
+fn config() -> RunConfig {
+    let mut config = RunConfig::default();
+    config.forward.num_seeds = 10;
+    config.env.max_episode_steps = 50;
+    config
+}
+
+/// Reports success for every reset until a report ends stage 1; returns the env steps then.
+fn solve_stage_1(curriculum: &mut Curriculum) -> u64 {
+    for env_steps in 1..100_000 {
+        let lease = curriculum.acquire().unwrap();
+        let AssignmentKind::DemoState { .. } = lease.kind else {
+            panic!("stage-1 lease {lease:?}");
+        };
+        let outcome = curriculum.report(&lease, SUCCESS, env_steps).unwrap();
+        if let Some(change) = outcome.stage_change {
+            assert_eq!(
+                (change.from, change.epoch, change.env_steps),
+                (Stage::Reverse, 1, env_steps)
+            );
+            return env_steps;
+        }
+    }
+    panic!("stage 1 never ended");
+}
+
+#[test]
+fn stage_1_ends_when_every_demo_is_solved_then_levels_are_handed_out() {
+    let mut curriculum = Curriculum::new(&config(), &demos(5)).unwrap();
+    let first = curriculum.acquire().unwrap();
+    // S = 13, t = 12: every geometric draw clips to the last state; limit 16 + floor(1/3).
+    assert_eq!(
+        first.kind,
+        AssignmentKind::DemoState {
+            demo: first_demo(&first.kind),
+            start_index: 12
+        }
+    );
+    assert_eq!((first.time_limit, first.stage_epoch), (16, 0));
+
+    let ended_at = solve_stage_1(&mut curriculum);
+    let reverse = curriculum.reverse();
+    // 5 of 5 solved (4 of 5 = 0.8 is not > 0.9).
+    assert!(reverse
+        .demos()
+        .iter()
+        .all(|d| d.solved && d.start_step == 0));
+    assert_eq!(curriculum.stages().stage(), Stage::Forward);
+    assert_eq!(curriculum.stages().stage_1_end_env_steps(), Some(ended_at));
+
+    // The stage-1 lease is now stale.
+    let stale = curriculum.report(&first, SUCCESS, ended_at + 1).unwrap();
+    assert_eq!(stale.applied, Applied::Stale);
+
+    // 10 seeds + 5 demo starts, stage-2 limit = H.
+    let mut sources = Vec::new();
+    for _ in 0..200 {
+        let lease = curriculum.acquire().unwrap();
+        assert_eq!((lease.time_limit, lease.stage_epoch), (50, 1));
+        let AssignmentKind::Level { level, source } = lease.kind else {
+            panic!("stage-2 lease {lease:?}");
+        };
+        assert_eq!(curriculum.forward().levels()[level].source, source);
+        sources.push(source);
+    }
+    assert!(sources.contains(&LevelSource::DemoStart {
+        demo: 4,
+        reset_seed: Some(104)
+    }));
+    assert!(sources.contains(&LevelSource::Seed(9)));
+}
+
+fn first_demo(kind: &AssignmentKind) -> usize {
+    match kind {
+        AssignmentKind::DemoState { demo, .. } => *demo,
+        AssignmentKind::Level { .. } => panic!("not a demo state"),
+    }
+}
+
+#[test]
+fn stage_2_reports_rescore_levels() {
+    let mut config = config();
+    config.train.stage_2_only = true;
+    let mut curriculum = Curriculum::new(&config, &demos(2)).unwrap();
+    let lease = curriculum.acquire().unwrap();
+    let AssignmentKind::Level { level, .. } = lease.kind else {
+        panic!("stage_2_only starts with levels: {lease:?}");
+    };
+    let outcome = curriculum.report(&lease, SUCCESS, 1).unwrap();
+    assert_eq!(outcome.applied, Applied::Forward { level, score: 3.0 });
+    assert_eq!(outcome.stage_change, None);
+    // A score-3 level now takes nearly all of P_S.
+    assert!(curriculum.forward().probabilities()[level] > 0.89);
+
+    let mut wrong = lease;
+    wrong.kind = AssignmentKind::DemoState {
+        demo: 0,
+        start_index: 0,
+    };
+    assert_eq!(
+        curriculum.report(&wrong, SUCCESS, 2),
+        Err(CurriculumError::WrongStage {
+            kind: "demo-state",
+            stage: Stage::Forward
+        })
+    );
+}
+
+#[test]
+fn stage_1_only_finishes() {
+    let mut config = config();
+    config.train.stage_1_only = true;
+    let mut curriculum = Curriculum::new(&config, &demos(1)).unwrap();
+    solve_stage_1(&mut curriculum);
+    assert_eq!(curriculum.stages().stage(), Stage::Finished);
+    assert_eq!(curriculum.acquire(), Err(CurriculumError::Finished));
+}
+
+#[test]
+fn failures_hold_the_frontier() {
+    let mut curriculum = Curriculum::new(&config(), &demos(3)).unwrap();
+    for step in 0..500 {
+        let lease = curriculum.acquire().unwrap();
+        let failure = EpisodeOutcome {
+            success_at_end: false,
+            episode_return: 0.0,
+        };
+        curriculum.report(&lease, failure, step).unwrap();
+    }
+    assert!(curriculum
+        .reverse()
+        .demos()
+        .iter()
+        .all(|d| d.start_step == 12 && !d.solved));
+    assert_eq!(
+        curriculum.reverse().demo_probabilities(),
+        vec![1.0 / 3.0; 3]
+    );
+}

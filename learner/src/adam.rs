@@ -1,0 +1,112 @@
+//! Adam (spec 5.3 "Optimisers": β1 0.9, β2 0.999, ε 1e-8, no clipping, no weight decay), in place.
+//!
+//! Not `tch::nn::Optimizer`: libtorch's C++ optimizer state (moments, step) is not reachable
+//! through tch, and spec 4.1 needs it in checkpoints ("each model's state = params + optimizer
+//! state + step"). The update is torch's single-tensor Adam, written in place into preallocated
+//! buffers; gradients come from `torch::autograd::grad` (no `.grad` accumulation, no zeroing).
+use tch::{nn, Tensor};
+
+#[derive(Debug)]
+pub struct Adam {
+    /// (name, parameter), sorted by name.
+    params: Vec<(String, Tensor)>,
+    exp_avg: Vec<Tensor>,
+    exp_avg_sq: Vec<Tensor>,
+    /// Scratch for the denominator, one per parameter.
+    scratch: Vec<Tensor>,
+    step: i64,
+    lr: f64,
+    beta1: f64,
+    beta2: f64,
+    eps: f64,
+}
+
+impl Adam {
+    /// Adam over every trainable variable of `vs`.
+    pub fn new(vs: &nn::VarStore, lr: f64, beta1: f64, beta2: f64, eps: f64) -> Self {
+        let mut params: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+        params.sort_by(|a, b| a.0.cmp(&b.0));
+        let zeros = |p: &(String, Tensor)| p.1.zeros_like().detach();
+        Self {
+            exp_avg: params.iter().map(zeros).collect(),
+            exp_avg_sq: params.iter().map(zeros).collect(),
+            scratch: params.iter().map(zeros).collect(),
+            params,
+            step: 0,
+            lr,
+            beta1,
+            beta2,
+            eps,
+        }
+    }
+
+    /// The parameters, in the order [`step`](Self::step) expects their gradients.
+    pub fn params(&self) -> Vec<&Tensor> {
+        self.params.iter().map(|(_, p)| p).collect()
+    }
+
+    /// Gradients of `loss` w.r.t. the parameters only (autograd computes nothing for other
+    /// leaves, e.g. a critic inside the actor loss), then one Adam step.
+    pub fn minimize(&mut self, loss: &Tensor) {
+        let grads = Tensor::run_backward(&[loss], &self.params(), false, false);
+        self.step(grads);
+    }
+
+    /// One Adam step with the given gradients (consumed as scratch).
+    pub fn step(&mut self, grads: Vec<Tensor>) {
+        self.step += 1;
+        let bias1 = 1.0 - self.beta1.powi(self.step as i32);
+        let bias2_sqrt = (1.0 - self.beta2.powi(self.step as i32)).sqrt();
+        // m̂ / (√v̂ + ε) = (√c2 / c1) · m / (√v + ε·√c2)
+        let step_size = self.lr * bias2_sqrt / bias1;
+        let eps = self.eps * bias2_sqrt;
+        tch::no_grad(|| {
+            for (i, mut grad) in grads.into_iter().enumerate() {
+                let (m, v, denom) = (&mut self.exp_avg[i], &mut self.exp_avg_sq[i], &mut self.scratch[i]);
+                let _ = m.lerp_(&grad, 1.0 - self.beta1);
+                let _ = grad.square_();
+                let _ = v.lerp_(&grad, 1.0 - self.beta2);
+                let _ = v.sqrt_out(denom);
+                let _ = denom.g_add_scalar_(eps);
+                let _ = m.div_out(denom, denom);
+                let _ = denom.g_mul_scalar_(-step_size);
+                let _ = self.params[i].1.g_add_(denom);
+            }
+        });
+    }
+
+    /// Steps taken so far.
+    pub fn step_count(&self) -> i64 {
+        self.step
+    }
+
+    /// The optimizer state as named tensors (`exp_avg.<param>`, `exp_avg_sq.<param>`, `step`),
+    /// for checkpoints.
+    pub fn state(&self) -> Vec<(String, Tensor)> {
+        let mut state = vec![("step".to_string(), Tensor::from(self.step))];
+        for (i, (name, _)) in self.params.iter().enumerate() {
+            state.push((format!("exp_avg.{name}"), self.exp_avg[i].shallow_clone()));
+            state.push((format!("exp_avg_sq.{name}"), self.exp_avg_sq[i].shallow_clone()));
+        }
+        state
+    }
+
+    /// Restores a state written by [`state`](Self::state) (missing names are an error).
+    pub fn load_state(&mut self, state: &[(String, Tensor)]) -> Result<(), tch::TchError> {
+        let find = |name: &str| {
+            state
+                .iter()
+                .find(|(n, _)| n == name)
+                .map(|(_, t)| t)
+                .ok_or_else(|| tch::TchError::TensorNameNotFound(name.to_string(), "adam state".into()))
+        };
+        self.step = find("step")?.int64_value(&[]);
+        tch::no_grad(|| -> Result<(), tch::TchError> {
+            for (i, (name, _)) in self.params.iter().enumerate() {
+                self.exp_avg[i].f_copy_(find(&format!("exp_avg.{name}"))?)?;
+                self.exp_avg_sq[i].f_copy_(find(&format!("exp_avg_sq.{name}"))?)?;
+            }
+            Ok(())
+        })
+    }
+}

@@ -1,0 +1,199 @@
+//! The learner benchmark: full SAC updates per second on synthetic data, for `rfcl bench learner`
+//! and `cargo bench -p rfcl-learner`, with the matmul FLOP count of each update.
+//!
+//! One "update" is one critic update plus its share 1/F of an actor and a temperature update, so
+//! in the G16/F1 schedule it is one critic and one actor update (design/STACK.md's 4.07 GFLOP
+//! figure) and in G80/F20 a critic update plus 1/20 of an actor update.
+use crate::batch::HostBatch;
+use crate::error::Result;
+use crate::sac::Sac;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rfcl_core::config::{MatmulPrecision, NetworkConfig, SacConfig};
+use serde::Serialize;
+use std::time::{Duration, Instant};
+
+/// What to measure.
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchConfig {
+    pub obs_dim: usize,
+    pub action_dim: usize,
+    pub batch_size: u32,
+    pub hidden: Vec<u32>,
+    pub critic_ensemble: u32,
+    pub target_pool: u32,
+    pub num_min_qs: u32,
+    /// (G, F) pairs.
+    pub schedules: Vec<(u32, u32)>,
+    pub matmul_precision: MatmulPrecision,
+    /// libtorch intra-op threads (`tch::set_num_threads`).
+    pub threads: i32,
+    /// Untimed iterations before measuring, per schedule.
+    pub warmup_iterations: u32,
+    /// Measure each schedule for at least this long.
+    pub min_time: Duration,
+    pub seed: u64,
+}
+
+impl Default for BenchConfig {
+    /// The RFCL network (spec 8.1) on a ManiSkill-sized task: obs 42, action 8, batch 256,
+    /// hidden 256×3, 10 critics, target min over 2 drawn from 10; G80/F20 and G16/F1.
+    fn default() -> Self {
+        Self {
+            obs_dim: 42,
+            action_dim: 8,
+            batch_size: 256,
+            hidden: vec![256, 256, 256],
+            critic_ensemble: 10,
+            target_pool: 10,
+            num_min_qs: 2,
+            schedules: vec![(80, 20), (16, 1)],
+            matmul_precision: MatmulPrecision::Fp32,
+            threads: 2,
+            warmup_iterations: 1,
+            min_time: Duration::from_secs(10),
+            seed: 0,
+        }
+    }
+}
+
+/// The measurement of one schedule.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScheduleResult {
+    pub schedule: String,
+    pub grad_updates_per_step: u32,
+    pub actor_update_freq: u32,
+    pub iterations: u64,
+    pub seconds: f64,
+    /// Updates (critic update + 1/F actor update) per second.
+    pub updates_per_s: f64,
+    pub critic_updates_per_s: f64,
+    pub actor_updates_per_s: f64,
+    pub flop_per_update: f64,
+    pub flop_per_critic_update: f64,
+    pub flop_per_actor_update: f64,
+    /// Achieved matmul GFLOP/s.
+    pub gflop_per_s: f64,
+    /// Seconds per iteration spent sampling and converting the batch (not in `seconds`).
+    pub batch_seconds_per_iteration: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchReport {
+    pub config: BenchConfig,
+    pub device: String,
+    pub results: Vec<ScheduleResult>,
+}
+
+/// Runs every schedule of `cfg` and returns the measurements (print them with `serde_json`).
+pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
+    tch::set_num_threads(cfg.threads);
+    let net = NetworkConfig {
+        actor_features: cfg.hidden.clone(),
+        critic_features: cfg.hidden.clone(),
+        ..NetworkConfig::default()
+    };
+    let mut results = Vec::new();
+    for &(g, f) in &cfg.schedules {
+        let sac_cfg = SacConfig {
+            batch_size: cfg.batch_size,
+            grad_updates_per_step: g,
+            actor_update_freq: f,
+            critic_ensemble: cfg.critic_ensemble,
+            target_pool: cfg.target_pool,
+            num_min_qs: cfg.num_min_qs,
+            matmul_precision: cfg.matmul_precision,
+            ..SacConfig::default()
+        };
+        let mut sac = Sac::new(cfg.obs_dim, cfg.action_dim, &sac_cfg, &net, cfg.seed)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+        let rows = (g * cfg.batch_size) as usize;
+        for _ in 0..cfg.warmup_iterations {
+            let batch = random_batch(&mut rng, rows, cfg.obs_dim, cfg.action_dim);
+            sac.train_iteration(&batch.to_tensors(sac.kind(), sac.device()))?;
+        }
+        let (mut iterations, mut busy, mut batch_time) = (0u64, Duration::ZERO, Duration::ZERO);
+        while busy < cfg.min_time {
+            let start = Instant::now();
+            let batch = random_batch(&mut rng, rows, cfg.obs_dim, cfg.action_dim)
+                .to_tensors(sac.kind(), sac.device());
+            let prepared = Instant::now();
+            sac.train_iteration(&batch)?;
+            batch_time += prepared - start;
+            busy += prepared.elapsed();
+            iterations += 1;
+        }
+        let flops = Flops::new(cfg, &net);
+        let seconds = busy.as_secs_f64();
+        let critic_updates = (iterations * u64::from(g)) as f64;
+        let actor_updates = (iterations * u64::from(g / f)) as f64;
+        let flop_per_update = flops.critic_update + flops.actor_update / f64::from(f);
+        results.push(ScheduleResult {
+            schedule: format!("G{g}/F{f}"),
+            grad_updates_per_step: g,
+            actor_update_freq: f,
+            iterations,
+            seconds,
+            updates_per_s: critic_updates / seconds,
+            critic_updates_per_s: critic_updates / seconds,
+            actor_updates_per_s: actor_updates / seconds,
+            flop_per_update,
+            flop_per_critic_update: flops.critic_update,
+            flop_per_actor_update: flops.actor_update,
+            gflop_per_s: critic_updates * flop_per_update / seconds / 1e9,
+            batch_seconds_per_iteration: batch_time.as_secs_f64() / iterations as f64,
+        });
+    }
+    Ok(BenchReport { config: cfg.clone(), device: format!("{:?}, {} threads", tch::Device::Cpu, tch::get_num_threads()), results })
+}
+
+/// Uniform random transitions in [-1, 1] (the maths do not care about the values).
+fn random_batch(rng: &mut ChaCha8Rng, rows: usize, obs_dim: usize, action_dim: usize) -> HostBatch {
+    let mut fill = |n: usize| (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<f32>>();
+    HostBatch {
+        obs_dim,
+        action_dim,
+        obs: fill(rows * obs_dim),
+        action: fill(rows * action_dim),
+        reward: fill(rows),
+        mask: vec![1.0; rows],
+        next_obs: fill(rows * obs_dim),
+    }
+}
+
+/// Matmul FLOPs (2 per multiply-add) of the updates; elementwise work is not counted.
+#[derive(Debug, Clone, Copy)]
+pub struct Flops {
+    pub critic_update: f64,
+    pub actor_update: f64,
+}
+
+impl Flops {
+    pub fn new(cfg: &BenchConfig, net: &NetworkConfig) -> Self {
+        let b = f64::from(cfg.batch_size);
+        let (obs, act) = (cfg.obs_dim as f64, cfg.action_dim as f64);
+        let e = f64::from(cfg.critic_ensemble);
+        let k = f64::from(cfg.num_min_qs);
+        // Multiply-adds per row of one network's forward pass, and of its first layer alone.
+        let macs = |dims: &[f64]| dims.windows(2).map(|p| p[0] * p[1]).sum::<f64>();
+        let widths = |f: &[u32]| f.iter().map(|&w| f64::from(w)).collect::<Vec<_>>();
+        let mut actor_dims = vec![obs];
+        actor_dims.extend(widths(&net.actor_features));
+        let actor_fwd = macs(&actor_dims) + actor_dims.last().unwrap() * 2.0 * act;
+        let actor_first = actor_dims[0] * actor_dims[1];
+        let mut critic_dims = vec![obs + act];
+        critic_dims.extend(widths(&net.critic_features));
+        critic_dims.push(1.0);
+        let critic_fwd = macs(&critic_dims);
+        let critic_first = critic_dims[0] * critic_dims[1];
+
+        let flop = |macs: f64| 2.0 * b * macs;
+        // Target: actor at s′, k target members; online critic forward + weight grads of every
+        // layer + input grads of every layer but the first.
+        let critic_update = flop(actor_fwd + k * critic_fwd + e * (3.0 * critic_fwd - critic_first));
+        // Actor forward, critic forward, critic input grads of every layer (down to the action),
+        // actor weight grads of every layer + input grads of every layer but the first.
+        let actor_update = flop(actor_fwd + e * 2.0 * critic_fwd + 2.0 * actor_fwd - actor_first);
+        Self { critic_update, actor_update }
+    }
+}
