@@ -24,10 +24,10 @@
 //! | 32 + 4·D + 4·A    | 4·D   | `next_obs`       | `f32` × D |
 //! | 32 + 8·D + 4·A    | 0 or 4 | padding (zero) to the next multiple of 8 |  |
 //!
-//! So [`RecordLayout::record_bytes`] = `32 + 4·(2·D + A)` rounded up to a multiple of 8, and every
-//! record of a batch (records back to back, no separators) starts 8-byte aligned relative to the
-//! batch. Obs 42 / action 8 gives 400 bytes. Readers ignore the padding bytes; writers zero them.
-//! Nothing here needs the buffer itself to be aligned: fields are read with `from_le_bytes`.
+//! So [`RecordLayout::record_bytes`] = `32 + 4·(2·D + A)` rounded up to a multiple of 8, and
+//! every record of a batch (records back to back, no separators) starts 8-byte aligned relative to
+//! the batch. Obs 42 / action 8 gives 400 bytes. Readers ignore the padding bytes; writers zero
+//! them. Nothing here needs the buffer itself to be aligned: fields are read with `from_le_bytes`.
 
 use thiserror::Error;
 

@@ -49,11 +49,20 @@ fn an_unknown_key_in_an_override_names_the_override() {
 #[test]
 fn suggestions_find_keys_in_other_sections_and_the_reference_names() {
     let (_, message, _) = error_of("batch_size: 512\n", &[]);
-    assert!(message.ends_with("unknown key 'batch_size' (did you mean 'sac.batch_size'?)"), "{message}");
+    assert!(
+        message.ends_with("unknown key 'batch_size' (did you mean 'sac.batch_size'?)"),
+        "{message}"
+    );
     let (_, message, _) = error_of("train:\n  eval_use_orig_env: false\n", &[]);
-    assert!(message.ends_with("(did you mean 'train.use_orig_env_for_eval'?)"), "{message}");
+    assert!(
+        message.ends_with("(did you mean 'train.use_orig_env_for_eval'?)"),
+        "{message}"
+    );
     let (_, message, _) = error_of("", &["num_eval_envs=4"]);
-    assert!(message.ends_with("(did you mean 'eval_env.num_envs'?)"), "{message}");
+    assert!(
+        message.ends_with("(did you mean 'eval_env.num_envs'?)"),
+        "{message}"
+    );
     let (_, message, _) = error_of("wandb:\n  project: x\n", &[]);
     assert!(message.ends_with("unknown key 'wandb'"), "{message}");
 }
@@ -76,7 +85,11 @@ fn an_unknown_key_in_a_base_names_the_base() {
 #[test]
 fn free_form_env_kwargs_accept_any_key() {
     let dir = tempfile::tempdir().unwrap();
-    let path = write(dir.path(), "x.yml", "env:\n  env_kwargs:\n    anything: {goes: [1]}\n");
+    let path = write(
+        dir.path(),
+        "x.yml",
+        "env:\n  env_kwargs:\n    anything: {goes: [1]}\n",
+    );
     let config = resolve_file(&path, &["env.env_kwargs.more=2".into()]).unwrap();
     assert_eq!(config.env.env_kwargs.len(), 2);
 }
@@ -91,24 +104,63 @@ fn a_wrong_type_names_the_key_what_was_expected_and_what_was_found() {
             path.display()
         )
     );
-    assert!(matches!(error, ConfigError::WrongType { origin: Source::File(_), .. }));
+    assert!(matches!(
+        error,
+        ConfigError::WrongType {
+            origin: Source::File(_),
+            ..
+        }
+    ));
 
     let cases = [
-        ("sac:\n  batch_size: 256.5\n", "sac.batch_size: expected an unsigned integer, got 256.5"),
-        ("sac:\n  batch_size: -1\n", "sac.batch_size: expected an unsigned integer in [0, 4294967295], got -1"),
-        ("service:\n  learner_port: 70000\n", "service.learner_port: expected an unsigned integer in [0, 65535], got 70000"),
-        ("sac:\n  tau: fast\n", "sac.tau: expected a number, got \"fast\""),
-        ("train:\n  shuffle_demos: 1\n", "train.shuffle_demos: expected a boolean, got 1"),
-        ("network:\n  actor_features: [64, big]\n", "network.actor_features[1]: expected an unsigned integer, got \"big\""),
-        ("network:\n  actor_features: 64\n", "network.actor_features: expected a list, got 64"),
+        (
+            "sac:\n  batch_size: 256.5\n",
+            "sac.batch_size: expected an unsigned integer, got 256.5",
+        ),
+        (
+            "sac:\n  batch_size: -1\n",
+            "sac.batch_size: expected an unsigned integer in [0, 4294967295], got -1",
+        ),
+        (
+            "service:\n  learner_port: 70000\n",
+            "service.learner_port: expected an unsigned integer in [0, 65535], got 70000",
+        ),
+        (
+            "sac:\n  tau: fast\n",
+            "sac.tau: expected a number, got \"fast\"",
+        ),
+        (
+            "train:\n  shuffle_demos: 1\n",
+            "train.shuffle_demos: expected a boolean, got 1",
+        ),
+        (
+            "network:\n  actor_features: [64, big]\n",
+            "network.actor_features[1]: expected an unsigned integer, got \"big\"",
+        ),
+        (
+            "network:\n  actor_features: 64\n",
+            "network.actor_features: expected a list, got 64",
+        ),
         ("sac: 5\n", "sac: expected a mapping, got 5"),
-        ("sac:\n  batch_size: null\n", "sac.batch_size: expected an unsigned integer, got null"),
-        ("train:\n  dataset_path: 5\n", "train.dataset_path: expected a string, got 5"),
-        ("sac:\n  utd_mode: 3\n", "sac.utd_mode: expected a string, got 3"),
+        (
+            "sac:\n  batch_size: null\n",
+            "sac.batch_size: expected an unsigned integer, got null",
+        ),
+        (
+            "train:\n  dataset_path: 5\n",
+            "train.dataset_path: expected a string, got 5",
+        ),
+        (
+            "sac:\n  utd_mode: 3\n",
+            "sac.utd_mode: expected a string, got 3",
+        ),
     ];
     for (text, expected) in cases {
         let (_, message, _) = error_of(text, &[]);
-        assert!(message.ends_with(expected), "{message}\n  should end with: {expected}");
+        assert!(
+            message.ends_with(expected),
+            "{message}\n  should end with: {expected}"
+        );
     }
 }
 
@@ -170,12 +222,20 @@ fn a_base_cycle_is_reported_with_the_chain() {
     assert!(matches!(error, ConfigError::Cycle { .. }));
     assert_eq!(
         error.to_string(),
-        format!("base_config cycle: {} -> {} -> {}", a.display(), b.display(), a.display())
+        format!(
+            "base_config cycle: {} -> {} -> {}",
+            a.display(),
+            b.display(),
+            a.display()
+        )
     );
 
     let selfish = write(dir.path(), "self.yml", "base_config: ./self.yml\n");
     let error = resolve_file(&selfish, &[]).unwrap_err();
-    assert!(matches!(error, ConfigError::Cycle { ref chain } if chain.len() == 2), "{error}");
+    assert!(
+        matches!(error, ConfigError::Cycle { ref chain } if chain.len() == 2),
+        "{error}"
+    );
 }
 
 #[test]
@@ -207,24 +267,51 @@ fn a_missing_base_names_the_including_file_and_where_it_looked() {
 fn a_missing_file_is_a_read_error() {
     let error = resolve_file(Path::new("/nonexistent/config.yml"), &[]).unwrap_err();
     assert!(matches!(error, ConfigError::Read { .. }));
-    assert!(error.to_string().starts_with("/nonexistent/config.yml: cannot read: "), "{error}");
+    assert!(
+        error
+            .to_string()
+            .starts_with("/nonexistent/config.yml: cannot read: "),
+        "{error}"
+    );
 }
 
 #[test]
 fn malformed_files_and_overrides_are_explained() {
     let cases: [(&str, &[&str], &str); 6] = [
         ("sac: [1,\n", &[], "invalid YAML: "),
-        ("- 1\n- 2\n", &[], "expected a mapping of sections at the top level, got [1,2]"),
-        ("base_config: {a: 1}\n", &[], "base_config must be a path or a list of paths"),
-        ("", &["sac.batch_size"], "expected KEY=VALUE, e.g. sac.batch_size=512"),
-        ("", &["sac..batch_size=3"], "the key must be dotted names, e.g. sac.batch_size"),
+        (
+            "- 1\n- 2\n",
+            &[],
+            "expected a mapping of sections at the top level, got [1,2]",
+        ),
+        (
+            "base_config: {a: 1}\n",
+            &[],
+            "base_config must be a path or a list of paths",
+        ),
+        (
+            "",
+            &["sac.batch_size"],
+            "expected KEY=VALUE, e.g. sac.batch_size=512",
+        ),
+        (
+            "",
+            &["sac..batch_size=3"],
+            "the key must be dotted names, e.g. sac.batch_size",
+        ),
         ("", &["sac.batch_size=[1,"], "invalid YAML: "),
     ];
     for (text, overrides, expected) in cases {
         let (_, message, _) = error_of(text, overrides);
-        assert!(message.contains(expected), "{message}\n  should contain: {expected}");
+        assert!(
+            message.contains(expected),
+            "{message}\n  should contain: {expected}"
+        );
     }
     let (_, message, _) = error_of("sac:\n  tau: 0.1\n  tau: 0.2\n", &[]);
-    assert!(message.contains("invalid YAML: duplicate mapping key: tau at line 3"), "{message}");
+    assert!(
+        message.contains("invalid YAML: duplicate mapping key: tau at line 3"),
+        "{message}"
+    );
     assert!(!message.contains("DuplicateKeyPolicy"), "{message}");
 }

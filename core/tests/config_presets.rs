@@ -17,7 +17,10 @@ fn preset_files() -> Vec<PathBuf> {
             let path = entry.unwrap().path();
             if path.is_dir() {
                 walk(&path, out);
-            } else if path.extension().is_some_and(|ext| ext == "yml" || ext == "yaml") {
+            } else if path
+                .extension()
+                .is_some_and(|ext| ext == "yml" || ext == "yaml")
+            {
                 out.push(path);
             }
         }
@@ -25,7 +28,10 @@ fn preset_files() -> Vec<PathBuf> {
     let root = configs_dir();
     let mut out = Vec::new();
     walk(&root, &mut out);
-    let mut files: Vec<PathBuf> = out.iter().map(|p| p.strip_prefix(&root).unwrap().to_owned()).collect();
+    let mut files: Vec<PathBuf> = out
+        .iter()
+        .map(|p| p.strip_prefix(&root).unwrap().to_owned())
+        .collect();
     files.sort();
     files
 }
@@ -51,14 +57,22 @@ fn task_presets() -> Vec<(String, RunConfig)> {
 #[test]
 fn every_file_resolves_validates_and_round_trips() {
     let files = preset_files();
-    assert!(files.len() >= 7 + 2 * (4 + 3 + 15 + 1), "found only {files:?}");
+    assert!(
+        files.len() >= 7 + 2 * (4 + 3 + 15 + 1),
+        "found only {files:?}"
+    );
     let dir = tempfile::tempdir().unwrap();
     for file in &files {
         let path = configs_dir().join(file);
         let config = resolve_file(&path, &[]).unwrap_or_else(|e| panic!("{e}"));
         let copy = dir.path().join("copy.yml");
         fs::write(&copy, to_yaml(&config)).unwrap();
-        assert_eq!(resolve_file(&copy, &[]).unwrap(), config, "{}", file.display());
+        assert_eq!(
+            resolve_file(&copy, &[]).unwrap(),
+            config,
+            "{}",
+            file.display()
+        );
     }
 }
 
@@ -66,7 +80,11 @@ fn every_file_resolves_validates_and_round_trips() {
 fn every_file_starts_with_a_comment_saying_what_it_is() {
     for file in preset_files() {
         let text = fs::read_to_string(configs_dir().join(&file)).unwrap();
-        assert!(text.starts_with("# "), "{} has no header comment", file.display());
+        assert!(
+            text.starts_with("# "),
+            "{} has no header comment",
+            file.display()
+        );
     }
 }
 
@@ -93,21 +111,65 @@ fn the_sets_carry_spec_8_2() {
         let plug_charger = file.contains("plug_charger");
         let sac = &c.sac;
         if sample_efficient {
-            assert_eq!((sac.steps_per_env, sac.grad_updates_per_step, sac.actor_update_freq), (1, 80, 20), "{file}");
+            assert_eq!(
+                (
+                    sac.steps_per_env,
+                    sac.grad_updates_per_step,
+                    sac.actor_update_freq
+                ),
+                (1, 80, 20),
+                "{file}"
+            );
             assert_eq!(sac.target_pool, 10, "{file}");
-            assert_eq!(sac.eval_freq, if plug_charger { 100_000 } else { 5_000 }, "{file}");
-            assert_eq!(sac.save_freq, if plug_charger { 1_000_000 } else { 10_000 }, "{file}");
-            assert_eq!(c.train.steps, if maniskill { 2_000_000 } else { 1_000_000 }, "{file}");
+            assert_eq!(
+                sac.eval_freq,
+                if plug_charger { 100_000 } else { 5_000 },
+                "{file}"
+            );
+            assert_eq!(
+                sac.save_freq,
+                if plug_charger { 1_000_000 } else { 10_000 },
+                "{file}"
+            );
+            assert_eq!(
+                c.train.steps,
+                if maniskill { 2_000_000 } else { 1_000_000 },
+                "{file}"
+            );
         } else {
-            assert_eq!((sac.steps_per_env, sac.grad_updates_per_step, sac.actor_update_freq), (4, 16, 1), "{file}");
+            assert_eq!(
+                (
+                    sac.steps_per_env,
+                    sac.grad_updates_per_step,
+                    sac.actor_update_freq
+                ),
+                (4, 16, 1),
+                "{file}"
+            );
             // The fast ManiSkill quirk (spec 5.1, deviation 2): target from members {0, 1}.
             assert_eq!(sac.target_pool, if maniskill { 2 } else { 10 }, "{file}");
-            assert_eq!(sac.eval_freq, if plug_charger { 100_000 } else { 50_000 }, "{file}");
-            assert_eq!(sac.save_freq, if plug_charger { 1_000_000 } else { 50_000 }, "{file}");
-            assert_eq!(c.train.steps, if maniskill { 4_000_000 } else { 2_000_000 }, "{file}");
+            assert_eq!(
+                sac.eval_freq,
+                if plug_charger { 100_000 } else { 50_000 },
+                "{file}"
+            );
+            assert_eq!(
+                sac.save_freq,
+                if plug_charger { 1_000_000 } else { 50_000 },
+                "{file}"
+            );
+            assert_eq!(
+                c.train.steps,
+                if maniskill { 4_000_000 } else { 2_000_000 },
+                "{file}"
+            );
         }
         // Spec 8.1, shared by all.
-        assert_eq!((sac.critic_ensemble, sac.num_min_qs, sac.tau), (10, 2, 0.005), "{file}");
+        assert_eq!(
+            (sac.critic_ensemble, sac.num_min_qs, sac.tau),
+            (10, 2, 0.005),
+            "{file}"
+        );
         assert_eq!(c.env.num_envs, 8, "{file}");
         assert_eq!(c.network.actor_features, [256, 256, 256], "{file}");
         assert_eq!(c.sac.num_seed_steps, 5000, "{file}");
@@ -118,18 +180,61 @@ fn the_sets_carry_spec_8_2() {
 fn maniskill3_presets_carry_spec_8_3() {
     // (file stem, env id, gamma, delta, phi, batch, buffer, data_action_scale)
     let rows = [
-        ("pick_cube", "PickCube-v1", 0.9, 4, 3.0, 256, 1_000_000, None),
-        ("stack_cube", "StackCube-v1", 0.9, 4, 3.0, 256, 1_000_000, None),
-        ("peg_insertion_side", "PegInsertionSide-v1", 0.99, 4, 3.0, 256, 1_000_000, None),
-        ("plug_charger", "PlugCharger-v1", 0.95, 2, 1.25, 512, 2_000_000, Some(1.25)),
+        (
+            "pick_cube",
+            "PickCube-v1",
+            0.9,
+            4,
+            3.0,
+            256,
+            1_000_000,
+            None,
+        ),
+        (
+            "stack_cube",
+            "StackCube-v1",
+            0.9,
+            4,
+            3.0,
+            256,
+            1_000_000,
+            None,
+        ),
+        (
+            "peg_insertion_side",
+            "PegInsertionSide-v1",
+            0.99,
+            4,
+            3.0,
+            256,
+            1_000_000,
+            None,
+        ),
+        (
+            "plug_charger",
+            "PlugCharger-v1",
+            0.95,
+            2,
+            1.25,
+            512,
+            2_000_000,
+            Some(1.25),
+        ),
     ];
     for (stem, env_id, gamma, delta, phi, batch, buffer, scale) in rows {
-        for file in [format!("maniskill3/{stem}.yml"), format!("maniskill3/{stem}_sample_efficient.yml")] {
+        for file in [
+            format!("maniskill3/{stem}.yml"),
+            format!("maniskill3/{stem}_sample_efficient.yml"),
+        ] {
             let c = load(&file);
             assert_eq!(c.env.env_id, env_id, "{file}");
             assert_eq!(c.env.suite, Suite::Maniskill3, "{file}");
             assert_eq!(c.env.max_episode_steps, 50, "{file}");
-            assert_eq!(c.env.control_mode.as_deref(), Some("pd_joint_delta_pos"), "{file}");
+            assert_eq!(
+                c.env.control_mode.as_deref(),
+                Some("pd_joint_delta_pos"),
+                "{file}"
+            );
             assert_eq!(c.sac.discount, gamma, "{file}");
             assert_eq!(c.reverse.reverse_step_size, delta, "{file}");
             assert_eq!(c.reverse.demo_horizon_to_max_steps_ratio, phi, "{file}");
@@ -150,9 +255,16 @@ fn adroit_presets_carry_spec_8_3() {
         ("pen", "AdroitHandPenSparse-v1", 100),
         ("relocate", "AdroitHandRelocateSparse-v1", 200),
     ] {
-        for file in [format!("adroit/{stem}.yml"), format!("adroit/{stem}_sample_efficient.yml")] {
+        for file in [
+            format!("adroit/{stem}.yml"),
+            format!("adroit/{stem}_sample_efficient.yml"),
+        ] {
             let c = load(&file);
-            assert_eq!((c.env.env_id.as_str(), c.env.suite), (env_id, Suite::Adroit), "{file}");
+            assert_eq!(
+                (c.env.env_id.as_str(), c.env.suite),
+                (env_id, Suite::Adroit),
+                "{file}"
+            );
             assert_eq!(c.env.max_episode_steps, horizon, "{file}");
             assert_eq!(c.env.control_mode, None, "{file}");
             assert_eq!(c.sac.discount, 0.99, "{file}");
@@ -166,15 +278,33 @@ fn adroit_presets_carry_spec_8_3() {
 #[test]
 fn metaworld_presets_are_the_15_hardest_tasks_with_spec_8_3() {
     let tasks = [
-        "assembly", "bin-picking", "box-close", "disassemble", "hammer", "hand-insert",
-        "pick-out-of-hole", "pick-place", "pick-place-wall", "push", "push-back", "shelf-place",
-        "soccer", "stick-pull", "stick-push",
+        "assembly",
+        "bin-picking",
+        "box-close",
+        "disassemble",
+        "hammer",
+        "hand-insert",
+        "pick-out-of-hole",
+        "pick-place",
+        "pick-place-wall",
+        "push",
+        "push-back",
+        "shelf-place",
+        "soccer",
+        "stick-pull",
+        "stick-push",
     ];
-    let presets: Vec<_> = task_presets().into_iter().filter(|(file, _)| file.starts_with("metaworld/")).collect();
+    let presets: Vec<_> = task_presets()
+        .into_iter()
+        .filter(|(file, _)| file.starts_with("metaworld/"))
+        .collect();
     assert_eq!(presets.len(), 2 * tasks.len());
     for task in tasks {
         let stem = task.replace('-', "_");
-        for file in [format!("metaworld/{stem}.yml"), format!("metaworld/{stem}_sample_efficient.yml")] {
+        for file in [
+            format!("metaworld/{stem}.yml"),
+            format!("metaworld/{stem}_sample_efficient.yml"),
+        ] {
             let c = load(&file);
             assert_eq!(c.env.env_id, format!("{task}-v3"), "{file}");
             assert_eq!(c.env.suite, Suite::Metaworld, "{file}");
@@ -192,7 +322,10 @@ fn metaworld_presets_are_the_15_hardest_tasks_with_spec_8_3() {
 fn pointmaze_presets_carry_spec_7_5_and_8_3() {
     for file in ["pointmaze.yml", "pointmaze_sample_efficient.yml"] {
         let c = load(file);
-        assert_eq!((c.env.env_id.as_str(), c.env.suite), ("PointMaze-v0", Suite::Pointmaze));
+        assert_eq!(
+            (c.env.env_id.as_str(), c.env.suite),
+            ("PointMaze-v0", Suite::Pointmaze)
+        );
         assert_eq!(c.env.max_episode_steps, 300);
         assert_eq!((c.env.obs_dim, c.env.action_dim), (Some(7), Some(2)));
         assert_eq!(c.eval_env.num_envs, 4);

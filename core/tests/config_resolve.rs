@@ -37,7 +37,11 @@ fn an_empty_file_is_the_default_config() {
 #[test]
 fn bases_chain_over_several_levels_and_the_child_wins() {
     let dir = tempfile::tempdir().unwrap();
-    write(dir.path(), "base/root.yml", "seed: 1\nsac:\n  batch_size: 64\n  tau: 0.01\n");
+    write(
+        dir.path(),
+        "base/root.yml",
+        "seed: 1\nsac:\n  batch_size: 64\n  tau: 0.01\n",
+    );
     write(
         dir.path(),
         "base/middle.yml",
@@ -60,7 +64,11 @@ fn a_list_of_bases_merges_left_to_right_then_the_file() {
     let dir = tempfile::tempdir().unwrap();
     write(dir.path(), "a.yml", "seed: 1\nname: from_a\n");
     write(dir.path(), "b.yml", "seed: 2\n");
-    let path = write(dir.path(), "c.yml", "base_config: [a.yml, b.yml]\nsac:\n  tau: 0.5\n");
+    let path = write(
+        dir.path(),
+        "c.yml",
+        "base_config: [a.yml, b.yml]\nsac:\n  tau: 0.5\n",
+    );
     let config = resolve_file(&path, &[]).unwrap();
     assert_eq!(config.seed, 2);
     assert_eq!(config.name, "from_a");
@@ -129,12 +137,20 @@ fn overrides_set_scalars_lists_strings_and_null_in_order() {
 fn num_qs_is_the_reference_alias_of_target_pool() {
     let dir = tempfile::tempdir().unwrap();
     write(dir.path(), "base.yml", "sac:\n  target_pool: 5\n");
-    let path = write(dir.path(), "x.yml", "base_config: base.yml\nsac:\n  num_qs: 2\n");
+    let path = write(
+        dir.path(),
+        "x.yml",
+        "base_config: base.yml\nsac:\n  num_qs: 2\n",
+    );
     assert_eq!(resolve_file(&path, &[]).unwrap().sac.target_pool, 2);
     let config = resolve_file(&path, &overrides(&["sac.num_qs=3"])).unwrap();
     assert_eq!(config.sac.target_pool, 3);
 
-    let both = write(dir.path(), "both.yml", "sac:\n  num_qs: 2\n  target_pool: 2\n");
+    let both = write(
+        dir.path(),
+        "both.yml",
+        "sac:\n  num_qs: 2\n  target_pool: 2\n",
+    );
     let error = resolve_file(&both, &[]).unwrap_err();
     assert!(matches!(error, ConfigError::Malformed { .. }), "{error}");
     assert!(error.to_string().contains("set only one"), "{error}");
@@ -148,12 +164,20 @@ fn a_relative_dataset_path_is_relative_to_the_file_that_sets_it() {
         "suite/base.yml",
         "train:\n  dataset_path: ../demos/./pick.h5\n",
     );
-    let task = write(dir.path(), "suite/tasks/task.yml", "base_config: ../base.yml\n");
+    let task = write(
+        dir.path(),
+        "suite/tasks/task.yml",
+        "base_config: ../base.yml\n",
+    );
     let config = resolve_file(&task, &[]).unwrap();
     let expected = std::path::absolute(dir.path().join("demos/pick.h5")).unwrap();
     assert_eq!(config.train.dataset_path.as_deref(), expected.to_str());
 
-    let absolute = write(dir.path(), "abs.yml", "train:\n  dataset_path: /srv/demos.h5\n");
+    let absolute = write(
+        dir.path(),
+        "abs.yml",
+        "train:\n  dataset_path: /srv/demos.h5\n",
+    );
     let config = resolve_file(&absolute, &[]).unwrap();
     assert_eq!(config.train.dataset_path.as_deref(), Some("/srv/demos.h5"));
 }
@@ -169,9 +193,11 @@ fn a_relative_dataset_path_override_is_relative_to_the_working_directory() {
 
 #[test]
 fn to_yaml_resolves_back_to_the_same_config() {
-    let mut config = RunConfig::default();
-    config.name = "round_trip".into();
-    config.demo_seed = Some(7);
+    let mut config = RunConfig {
+        name: "round_trip".into(),
+        demo_seed: Some(7),
+        ..RunConfig::default()
+    };
     config.sac.tau = 0.1 + 0.2; // not exactly representable in decimal
     config.sac.target_entropy = Some(-3.5);
     config.sac.actor_lr = 1e-7;
@@ -180,8 +206,14 @@ fn to_yaml_resolves_back_to_the_same_config() {
     config.train.dataset_path = Some("/data/it's \"quoted\": yes.h5".into());
     config.train.data_action_scale = Some(1.25);
     config.env.control_mode = Some("null".into()); // a string that looks like YAML null
-    config.env.env_kwargs.insert("flag".into(), serde_json::json!("true"));
-    config.env.env_kwargs.insert("nested".into(), serde_json::json!({"a": [1, 2.5, null]}));
+    config
+        .env
+        .env_kwargs
+        .insert("flag".into(), serde_json::json!("true"));
+    config
+        .env
+        .env_kwargs
+        .insert("nested".into(), serde_json::json!({"a": [1, 2.5, null]}));
     config.reverse.geometric_probs = vec![0.7, 0.3];
 
     let dir = tempfile::tempdir().unwrap();
@@ -209,13 +241,11 @@ mod round_trip_property {
             name in "[a-z][a-z0-9_-]{0,15}",
             kwarg in "\\PC{0,20}",
         ) {
-            let mut config = RunConfig::default();
-            config.seed = seed;
+            let mut config = RunConfig { seed, name, ..RunConfig::default() };
             config.sac.tau = tau;
             config.sac.discount = discount;
             config.sac.target_entropy = Some(entropy);
             config.service.dashboard_port = port;
-            config.name = name;
             config.env.env_kwargs.insert("text".into(), kwarg.into());
             let dir = tempfile::tempdir().unwrap();
             let path = write(dir.path(), "x.yml", &to_yaml(&config));

@@ -8,7 +8,8 @@ use serde_json::json;
 const OBS: usize = 5;
 const ACT: usize = 3;
 
-/// A demo with T actions whose values encode (episode, array, index), successful from `success_from`.
+/// A demo with T actions whose values encode (episode, array, index); success flags are set from
+/// step `success_from` on.
 fn demo(
     episode_id: u64,
     t: usize,
@@ -331,7 +332,10 @@ fn reset_seed_comes_from_reset_kwargs_then_episode_seed() {
         "env_info": {"env_id": "PickCube-v1"},
         "episodes": [
             {"episode_id": 0, "reset_kwargs": {"seed": [42]}, "episode_seed": 1, "success": true},
-            {"episode_id": 1, "reset_kwargs": {}, "episode_seed": 77, "success": false, "control_mode": "pd_joint_pos"},
+            {
+                "episode_id": 1, "reset_kwargs": {}, "episode_seed": 77, "success": false,
+                "control_mode": "pd_joint_pos",
+            },
             {"episode_id": 2, "episode_seed": 5, "success": true},
             {"episode_id": 3, "reset_kwargs": {"seed": null, "options": null}, "success": true},
         ],
@@ -482,7 +486,7 @@ fn summary_lists_episodes_dims_layout_and_seeds() {
         "env: PickCube-v1  control_mode: pd_joint_delta_pos  max_episode_steps: 50",
         "episodes: 4 (3 successful), T min 4 / mean 5.5 / max 7",
         "dims: obs 5, action 3, env_state 30",
-        "actors/cube  (actor)",
+        "actors/cube          (actor)",
         "articulations/panda  (articulation, dof 2)",
     ] {
         assert!(text.contains(expected), "missing {expected:?} in\n{text}");
@@ -511,8 +515,12 @@ fn state_layout_serialises_and_rejects_gaps() {
     let layout = ms3_layout();
     let text = serde_json::to_string(&layout).unwrap();
     assert_eq!(serde_json::from_str::<StateLayout>(&text).unwrap(), layout);
-    let gap = r#"[{"name":"actors/a","kind":"actor","offset":0,"len":13},{"name":"qpos","kind":"field","offset":14,"len":2}]"#;
-    let err = serde_json::from_str::<StateLayout>(gap).unwrap_err();
+    let gap = json!([
+        {"name": "actors/a", "kind": "actor", "offset": 0, "len": 13},
+        {"name": "qpos", "kind": "field", "offset": 14, "len": 2},
+    ])
+    .to_string();
+    let err = serde_json::from_str::<StateLayout>(&gap).unwrap_err();
     assert!(err.to_string().contains("qpos starts at 14"), "{err}");
 }
 
@@ -606,8 +614,10 @@ fn missing_actions_dataset() {
 #[test]
 fn missing_env_states() {
     let (_dir, path) = broken(|f| f.unlink("traj_0/env_states").unwrap());
-    assert!(
-        matches!(load_err(&path), DemoError::MissingDataset { episode_id: 0, ref dataset, .. } if dataset == "env_states")
+    let err = load_err(&path);
+    assert_eq!(
+        err.to_string(),
+        format!("{}: traj_0 has no 'env_states' dataset", path.display())
     );
 }
 
@@ -753,7 +763,8 @@ fn sidecar_without_an_entry_for_a_trajectory() {
     let dir = tempfile::tempdir().unwrap();
     let set = write_ms3(dir.path());
     let json = set.path.with_extension("json");
-    let sidecar = json!({"env_info": {}, "episodes": [{"episode_id": 0}, {"episode_id": 1}, {"episode_id": 3}]});
+    let episodes = json!([{"episode_id": 0}, {"episode_id": 1}, {"episode_id": 3}]);
+    let sidecar = json!({"env_info": {}, "episodes": episodes});
     std::fs::write(&json, sidecar.to_string()).unwrap();
     let text = DemoSet::load(&set.path).unwrap_err().to_string();
     assert_eq!(

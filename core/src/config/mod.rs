@@ -1,7 +1,7 @@
 //! Run configuration: schema, resolution and validation.
 //!
-//! * [`RunConfig`] and its sections ([`schema`](self)): every option of the spec, `Default` =
-//!   the reference behaviour.
+//! * [`RunConfig`] and its sections: every option of the spec; `Default` is the reference
+//!   behaviour.
 //! * [`resolve_file`]: a YAML file with its `base_config` chain and dotted command-line
 //!   overrides, checked key by key and validated.
 //! * [`RunConfig::validate`]: ranges and rules between options.

@@ -74,7 +74,7 @@ impl RunConfig {
     fn validate_sac(&self) -> Result<(), ConfigError> {
         let sac = &self.sac;
         at_least("sac.batch_size", sac.batch_size, 2)?;
-        ensure(sac.batch_size % 2 == 0, "sac.batch_size", || {
+        ensure(sac.batch_size.is_multiple_of(2), "sac.batch_size", || {
             format!(
                 "must be even: every minibatch is half online, half offline (spec 5.2), got {}",
                 sac.batch_size
@@ -95,7 +95,8 @@ impl RunConfig {
         at_least("sac.actor_update_freq", sac.actor_update_freq, 1)?;
         at_least("sac.grad_updates_per_step", sac.grad_updates_per_step, 1)?;
         ensure(
-            sac.grad_updates_per_step % sac.actor_update_freq == 0,
+            sac.grad_updates_per_step
+                .is_multiple_of(sac.actor_update_freq),
             "sac.grad_updates_per_step",
             || {
                 format!(

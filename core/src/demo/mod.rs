@@ -5,20 +5,21 @@
 //!
 //! | key          | shape      | read as                                                     |
 //! |--------------|------------|-------------------------------------------------------------|
-//! | `actions`    | [T, A]     | `f32`                                                       |
-//! | `obs`        | [T+1, D]   | `f32` (float64 is converted); obs_mode "state" only          |
-//! | `success`    | [T]        | `bool` (h5py's bool enum or any number, non-zero = true)    |
-//! | `env_states` | [T+1, ·]   | flattened to one `f32` row per step, see [`StateLayout`]    |
+//! | `actions`    | `[T, A]`   | `f32`                                                       |
+//! | `obs`        | `[T+1, D]` | `f32` (float64 is converted); obs_mode "state" only          |
+//! | `success`    | `[T]`      | `bool` (h5py's bool enum or any number, non-zero = true)    |
+//! | `env_states` | `[T+1, ·]` | flattened to one `f32` row per step, see [`StateLayout`]    |
 //!
 //! A 1-D dataset counts as one column. `env_states` comes in three forms, all flattened the same
 //! way (each row is the concatenation of the leaves, in the order below):
 //!
-//! * **MS2**: one flat dataset `env_states` [T+1, S] → one [`StateKind::Flat`] entry.
-//! * **MS3**: groups `env_states/actors/<name>` [T+1, 13] (pos 3, quat 4, linear velocity 3, angular
-//!   velocity 3) and `env_states/articulations/<name>` [T+1, 13 + 2·dof] (root pose 7, root velocity
-//!   6, qpos, qvel) → entries `actors/<name>` first, then `articulations/<name>` (spec 7.1).
-//! * **Adroit / MetaWorld**: named datasets `env_states/<field>` [T+1, k] → [`StateKind::Field`]
-//!   entries (spec 7.3, 7.4).
+//! * **MS2**: one flat dataset `env_states` `[T+1, S]` → one [`StateKind::Flat`] entry.
+//! * **MS3**: groups `env_states/actors/<name>` `[T+1, 13]` (pos 3, quat 4, linear velocity 3,
+//!   angular velocity 3) and `env_states/articulations/<name>` `[T+1, 13 + 2·dof]` (root pose 7,
+//!   root velocity 6, qpos, qvel) → entries `actors/<name>` first, then `articulations/<name>`
+//!   (spec 7.1).
+//! * **Adroit / MetaWorld**: named datasets `env_states/<field>` `[T+1, k]` →
+//!   [`StateKind::Field`] entries (spec 7.3, 7.4).
 //!
 //! Within a group, leaves follow the file's link order: creation order when the group tracks it
 //! (files written by [`DemoSet::write`] do), name order otherwise (h5py's default). Adapters
@@ -82,13 +83,13 @@ pub struct Demo {
     pub obs_dim: usize,
     pub action_dim: usize,
     pub state_dim: usize,
-    /// [(T+1) × obs_dim]
+    /// `[(T+1) × obs_dim]`
     pub obs: Vec<f32>,
-    /// [T × action_dim]
+    /// `[T × action_dim]`
     pub actions: Vec<f32>,
-    /// [T]: `success[t]` is the success flag after action t (the offline reward, spec 6.2).
+    /// `[T]`: `success[t]` is the success flag after action t (the offline reward, spec 6.2).
     pub success: Vec<bool>,
-    /// [(T+1) × state_dim], laid out by the set's [`StateLayout`].
+    /// `[(T+1) × state_dim]`, laid out by the set's [`StateLayout`].
     pub env_states: Vec<f32>,
     /// The episode's outcome, used to skip failed episodes (spec 6.1): the sidecar's flag when it
     /// has one, else the last step's flag.
@@ -170,8 +171,8 @@ impl DemoSet {
     /// episodes, take the first `num_demos`. Fails when fewer episodes succeeded, or when a chosen
     /// demo has no success-flagged step (the reverse curriculum starts from a success state).
     ///
-    /// The shuffle is a ChaCha8 Fisher–Yates shuffle: deterministic per seed, but not NumPy's order,
-    /// so the reference picks different demos for the same seed.
+    /// The shuffle is a ChaCha8 Fisher–Yates shuffle: deterministic per seed, but not NumPy's
+    /// order, so the reference picks different demos for the same seed.
     pub fn select(&self, num_demos: usize, shuffle: bool, seed: u64) -> Result<DemoSet, DemoError> {
         let mut order: Vec<&Demo> = self.demos.iter().collect();
         if shuffle {

@@ -49,6 +49,13 @@ fn write_summary(set: &DemoSet, out: &mut String) -> std::fmt::Result {
         set.obs_dim, set.action_dim, set.state_dim
     )?;
     writeln!(out, "  state layout:")?;
+    let width = set
+        .state_layout
+        .entries()
+        .iter()
+        .map(|e| e.name.chars().count())
+        .max()
+        .unwrap_or(0);
     for e in set.state_layout.entries() {
         let kind = match (e.kind, e.dof()) {
             (StateKind::Articulation, Some(dof)) => format!("articulation, dof {dof}"),
@@ -56,13 +63,8 @@ fn write_summary(set: &DemoSet, out: &mut String) -> std::fmt::Result {
             (StateKind::Flat, _) => "flat".to_owned(),
             _ => "field".to_owned(),
         };
-        writeln!(
-            out,
-            "    [{:>5}, {:>5})  {}  ({kind})",
-            e.offset,
-            e.offset + e.len,
-            e.name
-        )?;
+        let (start, end, name) = (e.offset, e.offset + e.len, &e.name);
+        writeln!(out, "    [{start:>5}, {end:>5})  {name:<width$}  ({kind})")?;
     }
     if set
         .demos

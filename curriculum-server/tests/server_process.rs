@@ -1,0 +1,241 @@
+//! Cross-process tests of the `curriculum-server` binary over real gRPC on loopback: stage 1 to
+//! stage 2 with a synthetic outcome model, SIGKILL + `--resume` continuing exactly from the last
+//! snapshot, and bad input that gets clear statuses and changes nothing.
+mod common;
+
+use common::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rfcl_core::demo::DemoSet;
+use rfcl_core::lease::{AcquireRequest, ResetLease};
+use rfcl_curriculum::dashboard::DashboardView;
+use rfcl_curriculum::service::{DemoResets, ServerState};
+use rfcl_curriculum::snapshot;
+use rfcl_proto::v1;
+
+fn acquire_req(actor_id: u32) -> v1::AcquireRequest {
+    v1::AcquireRequest { actor_id, env_index: 0, eval: false }
+}
+
+fn report_for(lease: &v1::ResetLease, success: bool, ret: f64) -> v1::EpisodeReport {
+    v1::EpisodeReport {
+        lease_id: lease.lease_id,
+        success_at_end: success,
+        success_once: success || ret > 0.0,
+        episode_return: ret,
+        length: lease.time_limit.min(20),
+        policy_version: 1,
+        stage_epoch: lease.stage_epoch,
+        actor_id: 0,
+        actor_env_steps: 0,
+        policy_env_steps: 0,
+    }
+}
+
+/// Success is more likely near the demo's end (easy states) than at its start.
+fn synthetic_outcome(rng: &mut ChaCha8Rng, lease: &v1::ResetLease, demo_states: u32) -> (bool, f64) {
+    if lease.kind == v1::LeaseKind::DemoState as i32 {
+        let frac = lease.start_index as f64 / (demo_states - 1) as f64;
+        let success = rng.random_bool(0.35 + 0.65 * frac);
+        (success, if success { 3.0 } else { 0.0 })
+    } else {
+        let once = rng.random_bool(0.5);
+        (once && rng.random_bool(0.8), if once { 2.0 } else { 0.0 })
+    }
+}
+
+async fn state_view(client: &mut v1::curriculum_client::CurriculumClient<tonic::transport::Channel>) -> DashboardView {
+    let json = client.get_state(v1::GetStateRequest {}).await.unwrap().into_inner().json;
+    serde_json::from_str(&json).unwrap()
+}
+
+/// The parts of the view that are curriculum state (not wall-clock dependent).
+fn curriculum_part(v: &DashboardView) -> serde_json::Value {
+    serde_json::json!({
+        "stage": v.stage, "epoch": v.stage_epoch, "env_steps": v.env_steps, "episodes": v.episodes,
+        "demos": v.demos, "levels": v.levels, "stage_1_env_steps": v.stage_1_env_steps,
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 30.0);
+    let run_dir = dir.path().join("run");
+    let (d, c, r) = (demos.to_str().unwrap(), config.to_str().unwrap(), run_dir.to_str().unwrap());
+    let mut server = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
+    let mut client = server.client().await;
+
+    let initial = state_view(&mut client).await;
+    assert_eq!(initial.stage, 1);
+    assert_eq!(initial.demos.len(), 3);
+    // S_i = 21 states (no truncation: 5 success steps), t_i starts at S_i - 1.
+    assert!(initial.demos.iter().all(|d| d.states == 21 && d.t == 20 && !d.solved));
+
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let mut stage_2_reports = 0;
+    let mut reports = 0;
+    while stage_2_reports < 37 {
+        reports += 1;
+        assert!(reports < 20_000, "stage 1 did not end within 20000 episodes");
+        let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+        if lease.kind == v1::LeaseKind::DemoState as i32 {
+            assert_eq!(lease.env_state, vec![lease.demo_id as f32, lease.start_index as f32, 0.5, -0.5]);
+            assert_eq!(lease.reset.as_ref().unwrap().seed, 100 + lease.demo_id as u64);
+            assert!(lease.time_limit >= 16 && lease.time_limit <= 100);
+        } else {
+            stage_2_reports += 1;
+            assert_eq!(lease.stage, 2);
+            assert_eq!(lease.time_limit, 100, "stage-2 episodes run the env horizon");
+        }
+        let (success, ret) = synthetic_outcome(&mut rng, &lease, 21);
+        let ack = client.report(report_for(&lease, success, ret)).await.unwrap().into_inner();
+        assert!(ack.applied);
+    }
+    let before_kill = state_view(&mut client).await;
+    assert_eq!(before_kill.stage, 2);
+    assert_eq!(before_kill.stage_epoch, 1);
+    assert!(before_kill.demos.iter().all(|d| d.solved && d.t == 0));
+    assert!(before_kill.stage_1_env_steps.unwrap() > 0);
+    assert_eq!(before_kill.levels.len(), 10 + 3, "10 seeds + 3 demo starts (deviation 3)");
+
+    // Kill -9: no final snapshot. The last periodic snapshot is what a restart must continue from.
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+    server.sigkill();
+    let snap_path = snapshot::snapshot_path(&run_dir);
+    let mut snap = snapshot::load(&snap_path, "ctest").expect("a periodic snapshot exists");
+    assert!(snap.stats.episodes > 0 && snap.stats.episodes <= before_kill.episodes);
+
+    let mut restarted = ServerProcess::start(&["--demos", d, "--config", c, "--resume", r]);
+    let mut client = restarted.client().await;
+    let resumed = state_view(&mut client).await;
+    let snap_view = snap.view("ctest", "PointMaze-v0", rfcl_curriculum::service::unix_now());
+    assert_eq!(curriculum_part(&resumed), curriculum_part(&snap_view));
+
+    // The restarted server hands out exactly what the snapshot's state hands out in-process.
+    let cfg = rfcl_core::config::resolve_file(&config, &[]).unwrap();
+    let set = {
+        let _guard = hdf5_fork_guard();
+        DemoSet::load(&demos).unwrap().select(3, false, 7).unwrap()
+    };
+    let resets = DemoResets::from_demos(&set);
+    for _ in 0..25 {
+        let expected: ResetLease = snap
+            .acquire(AcquireRequest { actor_id: 0, env_index: 0, eval: false }, &cfg, &resets, 0.0)
+            .unwrap();
+        let got = ResetLease::try_from(client.acquire(acquire_req(0)).await.unwrap().into_inner()).unwrap();
+        assert_eq!(got, expected);
+    }
+    // A clean stop writes a final snapshot and exits 0.
+    assert!(restarted.sigterm().success());
+    let last = snapshot::load(&snap_path, "ctest").unwrap();
+    assert_eq!(last.leases.granted_total(), snap.leases.granted_total());
+    let _: &ServerState = &last;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_reports_get_clear_statuses_and_change_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 30.0);
+    let run_dir = dir.path().join("run");
+    let server = ServerProcess::start(&[
+        "--demos",
+        demos.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--run-dir",
+        run_dir.to_str().unwrap(),
+    ]);
+    let mut client = server.client().await;
+    let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+    let before = curriculum_part(&state_view(&mut client).await);
+
+    let mut malformed = report_for(&lease, true, 1.0);
+    malformed.lease_id = 0;
+    let status = client.report(malformed).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument);
+    assert!(status.message().contains("EpisodeReport.lease_id"), "{}", status.message());
+
+    let mut nan = report_for(&lease, true, 1.0);
+    nan.episode_return = f64::NAN;
+    let status = client.report(nan).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument);
+    assert!(status.message().contains("episode_return"));
+
+    let mut unknown = report_for(&lease, true, 1.0);
+    unknown.lease_id = 999_999;
+    let status = client.report(unknown).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::NotFound);
+    assert!(status.message().contains("lease 999999 is unknown"), "{}", status.message());
+
+    let mut other_epoch = report_for(&lease, true, 1.0);
+    other_epoch.stage_epoch = 5;
+    let status = client.report(other_epoch).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::FailedPrecondition);
+    assert!(status.message().contains("stage epoch 0") && status.message().contains("says 5"), "{}", status.message());
+
+    assert_eq!(curriculum_part(&state_view(&mut client).await), before, "refused reports changed the curriculum");
+
+    // The real report applies once; its repeat is acknowledged and changes nothing.
+    assert!(client.report(report_for(&lease, true, 1.0)).await.unwrap().into_inner().applied);
+    let after_one = curriculum_part(&state_view(&mut client).await);
+    assert_ne!(after_one, before);
+    assert!(!client.report(report_for(&lease, true, 1.0)).await.unwrap().into_inner().applied);
+    assert_eq!(curriculum_part(&state_view(&mut client).await), after_one);
+
+    let view = state_view(&mut client).await;
+    let r = view.refused_reports;
+    assert_eq!((r.malformed, r.unknown, r.epoch_mismatch, r.duplicate), (2, 1, 1, 1));
+    assert_eq!(view.actors.len(), 1, "the actor is listed with its last-seen time");
+    assert_eq!((view.actors[0].actor_id, view.actors[0].episodes), (0, 1));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unreported_leases_expire_and_are_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 0.3);
+    let server = ServerProcess::start(&[
+        "--demos",
+        demos.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--run-dir",
+        dir.path().join("run").to_str().unwrap(),
+    ]);
+    let mut client = server.client().await;
+    let lease = client.acquire(acquire_req(1)).await.unwrap().into_inner();
+    let before = curriculum_part(&state_view(&mut client).await);
+    let mut view = state_view(&mut client).await;
+    for _ in 0..50 {
+        if view.expired_leases == 1 {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+        view = state_view(&mut client).await;
+    }
+    assert_eq!(view.expired_leases, 1);
+    assert_eq!(view.open_leases, 0);
+    let status = client.report(report_for(&lease, true, 1.0)).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::FailedPrecondition);
+    assert!(status.message().contains("expired"), "{}", status.message());
+    assert_eq!(curriculum_part(&state_view(&mut client).await), before);
+}
+
+#[test]
+fn startup_errors_are_one_clear_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = write_config(dir.path(), 30.0);
+    let missing = dir.path().join("nope.h5");
+    let _guard = hdf5_fork_guard();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
+        .args(["--demos", missing.to_str().unwrap(), "--config", config.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let line = stderr.lines().find(|l| l.starts_with("error:")).expect("an error line");
+    assert!(line.contains("nope.h5"), "{line}");
+}
