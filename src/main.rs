@@ -42,8 +42,14 @@ enum Command {
     },
     /// Benchmarks (results go to benches/RESULTS.md).
     Bench {
-        /// What to measure: learner, curriculum, actor, e2e.
+        /// What to measure: curriculum (learner, actor, e2e come with their issues).
         target: String,
+        /// Concurrent clients (curriculum).
+        #[arg(long, default_value_t = 64)]
+        clients: usize,
+        /// Seconds of load.
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
     },
     /// Run configurations.
     Config {
@@ -70,7 +76,7 @@ enum DemosCommand {
         /// Output .h5 file (a .json sidecar is written beside it).
         #[arg(long)]
         out: PathBuf,
-        /// Seed of the first demo.
+        /// Seed of the generator (PointMaze: it picks which start cells the demos start from).
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
@@ -115,9 +121,7 @@ fn run(cli: Cli) -> Result<()> {
             print!("{}", demos.summary());
             Ok(())
         }
-        Command::Demos { command: DemosCommand::Generate { env, .. } } => {
-            bail!("`rfcl demos generate --env {env}` is not built yet (issues 6 and 7)")
-        }
+        Command::Demos { command: DemosCommand::Generate { env, num, out, seed } } => generate_demos(&env, num, &out, seed),
         Command::Demos { command: DemosCommand::Convert { input, .. } } => {
             bail!("`rfcl demos convert {}` is not built yet (issues 7 and 8)", input.display())
         }
@@ -126,6 +130,70 @@ fn run(cli: Cli) -> Result<()> {
             bail!("`rfcl train` is not built yet (issue 6): the config resolves, but no run was started")
         }
         Command::Eval { run_dir, .. } => bail!("`rfcl eval {}` is not built yet (issue 6)", run_dir.display()),
-        Command::Bench { target } => bail!("`rfcl bench {target}` is not built yet (issues 4 and 5)"),
+        Command::Bench { target, clients, seconds } => match target.as_str() {
+            "curriculum" => bench_curriculum(clients, seconds),
+            other => bail!("`rfcl bench {other}` is not built yet (learner: issue 5; actor, e2e: issue 6); available: curriculum"),
+        },
     }
+}
+
+fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Result<()> {
+    use rfcl_actor::pointmaze::{self, demos};
+    if !env.eq_ignore_ascii_case("pointmaze") && env != pointmaze::ENV_ID {
+        bail!("`rfcl demos generate --env {env}` is not built yet: only pointmaze ({}) is (ManiSkill3: issue 7; MetaWorld: issue 8)", pointmaze::ENV_ID);
+    }
+    if num == 0 {
+        bail!("-n must be at least 1");
+    }
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let set = demos::demo_set(demos::generate_demos(num as usize, seed), out);
+    set.write(out)?;
+    let lengths: Vec<usize> = set.demos.iter().map(|d| d.len()).collect();
+    println!(
+        "wrote {num} successful PointMaze demos to {} (+ {}), lengths {lengths:?}",
+        out.display(),
+        rfcl_core::demo::DemoSet::sidecar_path(out).display()
+    );
+    Ok(())
+}
+
+/// Acquire + Report pairs against the `curriculum-server` binary on loopback, with PointMaze demos.
+fn bench_curriculum(clients: usize, seconds: f64) -> Result<()> {
+    use std::io::{BufRead, BufReader};
+    use std::process::{Command, Stdio};
+    let dir = tempfile::tempdir()?;
+    let demos = dir.path().join("demos.h5");
+    generate_demos("pointmaze", 5, &demos, 0)?;
+    let config = dir.path().join("bench.yml");
+    // Snapshots as in a run; leases never expire during the bench.
+    std::fs::write(&config, "name: bench\nenv:\n  suite: pointmaze\n  env_id: PointMaze-v0\nservice:\n  lease_timeout_s: 600\n")?;
+    let server_bin = std::env::current_exe()?.with_file_name("curriculum-server");
+    let mut child = Command::new(&server_bin)
+        .args(["--demos", demos.to_str().unwrap(), "--config", config.to_str().unwrap(), "--run-dir"])
+        .arg(dir.path().join("run"))
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .spawn()
+        .with_context(|| format!("starting {}", server_bin.display()))?;
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line)?;
+    let addr = line.split("grpc=").nth(1).and_then(|s| s.split_whitespace().next()).map(|a| format!("http://{a}"));
+    let Some(addr) = addr else {
+        let _ = child.kill();
+        bail!("curriculum-server did not start: {line:?}");
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    let result = rt.block_on(rfcl_curriculum::bench::acquire_report(&addr, clients, std::time::Duration::from_secs_f64(seconds)));
+    let _ = child.kill();
+    let _ = child.wait();
+    let result = result?;
+    let json = serde_json::json!({
+        "bench": "curriculum_acquire_report",
+        "result": result,
+        "machine": { "cpus": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0) },
+    });
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    Ok(())
 }

@@ -182,6 +182,25 @@ fn a_relative_dataset_path_is_relative_to_the_file_that_sets_it() {
     assert_eq!(config.train.dataset_path.as_deref(), Some("/srv/demos.h5"));
 }
 
+#[cfg(unix)]
+#[test]
+fn relative_paths_follow_symlinked_directories_like_the_os_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = fs::canonicalize(dir.path()).unwrap();
+    write(&root, "real/common.yml", "seed: 5\n");
+    write(
+        &root,
+        "real/sub/task.yml",
+        "base_config: ../common.yml\ntrain:\n  dataset_path: ../demos/x.h5\n",
+    );
+    std::os::unix::fs::symlink(root.join("real/sub"), root.join("link")).unwrap();
+    // `link/../common.yml` is `real/common.yml` for the OS, not `common.yml` next to `link`.
+    let config = resolve_file(&root.join("link/task.yml"), &[]).unwrap();
+    assert_eq!(config.seed, 5);
+    let expected = root.join("real/demos/x.h5");
+    assert_eq!(config.train.dataset_path.as_deref(), expected.to_str());
+}
+
 #[test]
 fn a_relative_dataset_path_override_is_relative_to_the_working_directory() {
     let dir = tempfile::tempdir().unwrap();

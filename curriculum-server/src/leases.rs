@@ -3,7 +3,11 @@
 //! It makes reports exactly-once: a lease is applied on its first report; a repeat is acknowledged
 //! and changes nothing; a report of an expired, unknown or other-epoch lease is refused, counted and
 //! changes nothing. Pure logic: time is passed in, so tests control it.
-use std::collections::{HashMap, VecDeque};
+//!
+//! Lease ids are handed out in order, so the table needs no memory of reported leases: an id below
+//! the next one that is neither open nor expired was reported. Only expired ids are remembered
+//! (they are rare), up to a bound.
+use std::collections::{BTreeSet, HashMap};
 
 use serde::{Deserialize, Serialize};
 
@@ -16,13 +20,6 @@ pub struct LeaseGrant<A> {
     /// Seconds (server clock) at which it was handed out.
     pub issued_at: f64,
     pub assignment: A,
-}
-
-/// How a lease ended.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-enum Closed {
-    Reported,
-    Expired,
 }
 
 /// Why a report was not applied.
@@ -53,27 +50,26 @@ pub struct RefusalCounts {
     pub epoch_mismatch: u64,
 }
 
-/// Open leases plus a bounded memory of closed ones (to tell a duplicate from an unknown lease).
+/// Open leases and the ids of expired ones.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct LeaseTable<A> {
     next_id: u64,
     open: HashMap<u64, LeaseGrant<A>>,
-    closed: HashMap<u64, Closed>,
-    closed_order: VecDeque<u64>,
-    closed_capacity: usize,
+    expired: BTreeSet<u64>,
+    expired_capacity: usize,
     pub expired_total: u64,
     pub refusals: RefusalCounts,
 }
 
 impl<A: Clone> LeaseTable<A> {
-    /// `closed_capacity`: how many closed lease ids are remembered for duplicate detection.
-    pub fn new(closed_capacity: usize) -> Self {
+    /// `expired_capacity`: how many expired lease ids are remembered; a report of an older expired
+    /// lease is refused as a duplicate instead of as expired (it changes nothing either way).
+    pub fn new(expired_capacity: usize) -> Self {
         Self {
             next_id: 1,
             open: HashMap::new(),
-            closed: HashMap::new(),
-            closed_order: VecDeque::new(),
-            closed_capacity: closed_capacity.max(1),
+            expired: BTreeSet::new(),
+            expired_capacity: expired_capacity.max(1),
             expired_total: 0,
             refusals: RefusalCounts::default(),
         }
@@ -110,16 +106,10 @@ impl<A: Clone> LeaseTable<A> {
                 lease_epoch: grant.stage_epoch,
                 report_epoch,
             },
-            Some(_) => {
-                let grant = self.open.remove(&lease_id).expect("present");
-                self.remember(lease_id, Closed::Reported);
-                return Ok(grant);
-            }
-            None => match self.closed.get(&lease_id) {
-                Some(Closed::Reported) => ReportRefusal::Duplicate(lease_id),
-                Some(Closed::Expired) => ReportRefusal::Expired(lease_id),
-                None => ReportRefusal::Unknown(lease_id),
-            },
+            Some(_) => return Ok(self.open.remove(&lease_id).expect("present")),
+            None if lease_id == 0 || lease_id >= self.next_id => ReportRefusal::Unknown(lease_id),
+            None if self.expired.contains(&lease_id) => ReportRefusal::Expired(lease_id),
+            None => ReportRefusal::Duplicate(lease_id),
         };
         match refusal {
             ReportRefusal::Duplicate(_) => self.refusals.duplicate += 1,
@@ -141,17 +131,6 @@ impl<A: Clone> LeaseTable<A> {
         self.close_all(stale)
     }
 
-    /// Expires every open lease of an older stage epoch (a stage change makes them meaningless).
-    pub fn expire_epochs_before(&mut self, epoch: u64) -> Vec<LeaseGrant<A>> {
-        let stale: Vec<u64> = self
-            .open
-            .values()
-            .filter(|g| g.stage_epoch < epoch)
-            .map(|g| g.lease_id)
-            .collect();
-        self.close_all(stale)
-    }
-
     fn close_all(&mut self, mut ids: Vec<u64>) -> Vec<LeaseGrant<A>> {
         ids.sort_unstable();
         let expired: Vec<_> = ids
@@ -159,20 +138,13 @@ impl<A: Clone> LeaseTable<A> {
             .filter_map(|id| self.open.remove(&id))
             .collect();
         for g in &expired {
-            self.remember(g.lease_id, Closed::Expired);
+            self.expired.insert(g.lease_id);
+        }
+        while self.expired.len() > self.expired_capacity {
+            self.expired.pop_first();
         }
         self.expired_total += expired.len() as u64;
         expired
-    }
-
-    fn remember(&mut self, lease_id: u64, how: Closed) {
-        self.closed.insert(lease_id, how);
-        self.closed_order.push_back(lease_id);
-        while self.closed_order.len() > self.closed_capacity {
-            if let Some(old) = self.closed_order.pop_front() {
-                self.closed.remove(&old);
-            }
-        }
     }
 
     pub fn open_count(&self) -> usize {
@@ -239,23 +211,22 @@ mod tests {
     }
 
     #[test]
-    fn a_stage_change_expires_the_old_epochs_leases() {
-        let mut t = LeaseTable::new(16);
-        t.grant(0, 0, 0.0, ());
-        t.grant(0, 1, 0.0, ());
-        assert_eq!(t.expire_epochs_before(1).len(), 1);
-        assert_eq!(t.open_count(), 1);
-    }
-
-    #[test]
-    fn closed_memory_is_bounded() {
+    fn expired_memory_is_bounded_and_reported_ids_need_none() {
         let mut t = LeaseTable::new(2);
         for _ in 0..3 {
+            t.grant(0, 0, 0.0, ());
+        }
+        assert_eq!(t.expire(10.0, 1.0).len(), 3);
+        // Lease 1 fell out of the expired memory: refused as a duplicate; it still changes nothing.
+        assert_eq!(t.take_for_report(1, 0), Err(ReportRefusal::Duplicate(1)));
+        assert_eq!(t.take_for_report(3, 0), Err(ReportRefusal::Expired(3)));
+        for _ in 0..10_000 {
             let id = t.grant(0, 0, 0.0, ()).lease_id;
             t.take_for_report(id, 0).unwrap();
         }
-        // Lease 1 fell out of the memory: it is now unknown rather than a duplicate.
-        assert_eq!(t.take_for_report(1, 0), Err(ReportRefusal::Unknown(1)));
-        assert_eq!(t.take_for_report(3, 0), Err(ReportRefusal::Duplicate(3)));
+        assert_eq!(t.take_for_report(4, 0), Err(ReportRefusal::Duplicate(4)));
+        assert_eq!(t.take_for_report(0, 0), Err(ReportRefusal::Unknown(0)));
+        assert_eq!(t.take_for_report(t.granted_total() + 1, 0), Err(ReportRefusal::Unknown(t.granted_total() + 1)));
+        assert_eq!(serde_json::to_string(&t).unwrap().len() < 300, true, "no per-report memory");
     }
 }

@@ -27,3 +27,4 @@ pub mod leases;
 pub mod server;
 pub mod service;
 pub mod snapshot;
+pub mod bench;

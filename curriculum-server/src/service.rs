@@ -177,7 +177,7 @@ impl ServerState {
         };
         let mut state = ServerState {
             curriculum,
-            leases: LeaseTable::new(1 << 20),
+            leases: LeaseTable::new(100_000),
             stats,
             reports_since_snapshot: 0,
         };

@@ -74,7 +74,7 @@ fn sac_learns_sparse_reward_reach() {
     let mut sac = Sac::new(2, 1, &cfg, &net, 0).unwrap();
     let mut replay = Replay::new(ReplayBuffer::new("online", 20_000, 2, 1).unwrap(), None, 1);
     let mut rng = ChaCha8Rng::seed_from_u64(2);
-    let (seed_steps, steps, steps_per_iteration) = (1000, 8000, 2);
+    let (seed_steps, steps, steps_per_iteration) = (1000, 5000, 2);
 
     let mut env = Reach::reset(&mut rng);
     for step in 0..steps {

@@ -43,7 +43,7 @@ pub fn resolve_file(path: &Path, overrides: &[String]) -> Result<RunConfig, Conf
         }
         merge(&mut merged, tree);
     }
-    let config = deserialize(&merged, &Source::File(path.to_owned()))?;
+    let config = deserialize(&merged, &Source::File(normalize(path)))?;
     config.validate().map_err(|error| match error {
         ConfigError::Invalid {
             origin: None,
@@ -72,24 +72,26 @@ struct Layer {
 }
 
 /// Loads `path` and its bases (depth first, in order) into `layers`. `chain` holds the files
-/// being loaded, (canonical, as shown), to detect cycles.
+/// being loaded, (canonical, as shown), to detect cycles. Files are opened by the path as joined;
+/// messages show it with `.` and `..` folded.
 fn load(
     path: &Path,
     schema: &Value,
     chain: &mut Vec<(PathBuf, PathBuf)>,
     layers: &mut Vec<Layer>,
 ) -> Result<(), ConfigError> {
+    let shown = normalize(path);
     let read_error = |source| ConfigError::Read {
-        path: path.to_owned(),
+        path: shown.clone(),
         source,
     };
     let canonical = fs::canonicalize(path).map_err(read_error)?;
     if chain.iter().any(|(seen, _)| *seen == canonical) {
         let mut cycle: Vec<PathBuf> = chain.iter().map(|(_, shown)| shown.clone()).collect();
-        cycle.push(path.to_owned());
+        cycle.push(shown);
         return Err(ConfigError::Cycle { chain: cycle });
     }
-    let origin = Source::File(path.to_owned());
+    let origin = Source::File(shown.clone());
     let text = fs::read_to_string(path).map_err(read_error)?;
     let mut tree = parse_yaml(&text).map_err(|message| ConfigError::Yaml {
         origin: origin.clone(),
@@ -105,20 +107,23 @@ fn load(
         });
     }
     let bases = take_bases(&mut tree, &origin)?;
-    let dir = path.parent().unwrap_or(Path::new(""));
-    let layer = prepare(tree, origin, dir, schema)?;
+    let real_dir = canonical
+        .parent()
+        .expect("a canonical file path has a parent");
+    let layer = prepare(tree, origin, real_dir, schema)?;
 
-    chain.push((canonical, path.to_owned()));
+    chain.push((canonical, shown.clone()));
+    let dir = path.parent().unwrap_or(Path::new(""));
     for base in bases {
-        let resolved = normalize(&dir.join(&base));
-        if !resolved.is_file() {
+        let base_path = dir.join(&base);
+        if !base_path.is_file() {
             return Err(ConfigError::MissingBase {
-                file: path.to_owned(),
+                file: shown,
                 base,
-                resolved,
+                resolved: normalize(&base_path),
             });
         }
-        load(&resolved, schema, chain, layers)?;
+        load(&base_path, schema, chain, layers)?;
     }
     chain.pop();
     layers.push(layer);
@@ -168,11 +173,16 @@ fn override_layer(arg: &str, schema: &Value) -> Result<Layer, ConfigError> {
     })?;
     let mut tree = Value::Object(Map::new());
     set(&mut tree, key, value);
-    prepare(tree, origin, Path::new("."), schema)
+    let cwd = std::env::current_dir().map_err(|e| ConfigError::Malformed {
+        origin: origin.clone(),
+        message: format!("cannot read the working directory: {e}"),
+    })?;
+    prepare(tree, origin, &cwd, schema)
 }
 
-/// Checks one layer on its own: aliases, unknown keys, types; and rebases its dataset path on
-/// `dir`.
+/// Checks one layer on its own: aliases, unknown keys, types; and rebases a relative dataset path
+/// on `dir`, an absolute directory (canonical for files, so folding `..` lexically is exact up to
+/// it).
 fn prepare(
     mut tree: Value,
     origin: Source,
@@ -183,21 +193,13 @@ fn prepare(
     check_keys(&tree, schema, &origin)?;
     if let Some(Value::String(dataset)) = get(&tree, DATASET_PATH) {
         if !dataset.is_empty() && Path::new(dataset).is_relative() {
-            let absolute =
-                std::path::absolute(dir.join(dataset)).map_err(|e| ConfigError::Invalid {
-                    origin: Some(origin.clone()),
-                    key: DATASET_PATH.into(),
-                    message: format!("cannot make {dataset:?} absolute: {e}"),
-                })?;
-            let absolute = normalize(&absolute)
-                .to_str()
-                .map(str::to_owned)
-                .ok_or_else(|| ConfigError::Invalid {
-                    origin: Some(origin.clone()),
-                    key: DATASET_PATH.into(),
-                    message: format!("{} is not valid UTF-8", absolute.display()),
-                })?;
-            set(&mut tree, DATASET_PATH, Value::String(absolute));
+            let absolute = normalize(&dir.join(dataset));
+            let absolute = absolute.to_str().ok_or_else(|| ConfigError::Invalid {
+                origin: Some(origin.clone()),
+                key: DATASET_PATH.into(),
+                message: format!("{} is not valid UTF-8", absolute.display()),
+            })?;
+            set(&mut tree, DATASET_PATH, Value::String(absolute.to_owned()));
         }
     }
     deserialize(&tree, &origin)?;

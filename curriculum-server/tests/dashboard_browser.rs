@@ -1,0 +1,106 @@
+//! The dashboard in a real browser: headless Chromium (Debian's `chromium`) loads the page served
+//! by the `curriculum-server` binary and must render one bar per demo, the SVG charts, and the
+//! JSON and metrics endpoints must agree with it.
+mod common;
+
+use std::process::Command;
+
+use common::*;
+
+fn chromium() -> &'static str {
+    for candidate in ["/usr/bin/chromium", "/usr/bin/chromium-browser"] {
+        if std::path::Path::new(candidate).exists() {
+            return candidate;
+        }
+    }
+    panic!("Debian's chromium is needed for the dashboard test: run scripts/setup.sh (apt-get install chromium)");
+}
+
+fn headless(profile: &std::path::Path) -> Command {
+    let mut cmd = Command::new(chromium());
+    cmd.args([
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+    ])
+    .arg(format!("--user-data-dir={}", profile.display()));
+    cmd
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn chromium_renders_the_demo_bars() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 30.0);
+    let server = ServerProcess::start(&[
+        "--demos",
+        demos.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--run-dir",
+        dir.path().join("run").to_str().unwrap(),
+    ]);
+    // Some progress so the page has something to show.
+    let mut client = server.client().await;
+    for _ in 0..30 {
+        let lease = client.acquire(rfcl_proto::v1::AcquireRequest { actor_id: 2, env_index: 0, eval: false }).await.unwrap().into_inner();
+        let report = rfcl_proto::v1::EpisodeReport {
+            lease_id: lease.lease_id,
+            success_at_end: true,
+            success_once: true,
+            episode_return: 5.0,
+            length: 16,
+            policy_version: 1,
+            stage_epoch: lease.stage_epoch,
+            actor_id: 2,
+            actor_env_steps: 16,
+            policy_env_steps: 0,
+        };
+        client.report(report).await.unwrap();
+    }
+
+    let out = {
+        let _guard = hdf5_fork_guard();
+        headless(&dir.path().join("profile")).arg("--dump-dom").arg(&server.dashboard).output().unwrap()
+    };
+    assert!(out.status.success(), "chromium failed: {}", String::from_utf8_lossy(&out.stderr));
+    let dom = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(dom.matches("class=\"demo-bar\"").count(), 3, "one bar row per demo:\n{dom}");
+    assert!(dom.contains("<svg"), "charts are inline SVG");
+    assert!(dom.contains("demo 2"), "the bar chart labels the demos");
+    assert!(dom.contains("stage <b>1</b>"));
+    assert!(!dom.contains("chart failed"));
+
+    // A screenshot renders too (the README's picture is made the same way).
+    let shot = dir.path().join("dashboard.png");
+    let status = {
+        let _guard = hdf5_fork_guard();
+        headless(&dir.path().join("profile2"))
+            .arg(format!("--screenshot={}", shot.display()))
+            .arg("--window-size=900,1400")
+            .arg(&server.dashboard)
+            .output()
+            .unwrap()
+            .status
+    };
+    assert!(status.success());
+    let png = std::fs::read(&shot).unwrap();
+    assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000, "a real screenshot, {} bytes", png.len());
+
+    // /api/state and /metrics describe the same state.
+    let get = |path: &str| {
+        let out = Command::new("curl").args(["-sf", &format!("{}{}", server.dashboard, path)]).output().unwrap();
+        assert!(out.status.success(), "GET {path} failed");
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let view: rfcl_curriculum::dashboard::DashboardView = serde_json::from_str(&get("api/state")).unwrap();
+    assert_eq!(view.episodes, 30);
+    let metrics = get("metrics");
+    assert!(metrics.contains("rfcl_curriculum_episodes_total 30"), "{metrics}");
+    assert!(metrics.contains("rfcl_curriculum_leases_granted_total 30"));
+}

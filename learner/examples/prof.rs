@@ -1,0 +1,47 @@
+use rfcl_core::config::{NetworkConfig, SacConfig};
+use rfcl_learner::{Batch, Sac};
+use std::time::Instant;
+use tch::{Kind, Tensor};
+
+fn time<F: FnMut()>(name: &str, n: usize, mut f: F) {
+    f();
+    let mut best = f64::MAX;
+    for _ in 0..3 {
+        let s = Instant::now();
+        for _ in 0..n { f(); }
+        best = best.min(s.elapsed().as_secs_f64() / n as f64 * 1e3);
+    }
+    println!("{name:40} {best:8.3} ms");
+}
+
+fn main() {
+    let threads: i32 = std::env::var("T").map(|t| t.parse().unwrap()).unwrap_or(1);
+    tch::set_num_threads(threads);
+    let cfg = SacConfig::default();
+    let net = NetworkConfig::default();
+    let mut sac = Sac::new(42, 8, &cfg, &net, 0).unwrap();
+    let b = 256;
+    let mb = Batch {
+        obs: Tensor::randn([b, 42], (Kind::Float, tch::Device::Cpu)),
+        action: Tensor::rand([b, 8], (Kind::Float, tch::Device::Cpu)),
+        reward: Tensor::rand([b], (Kind::Float, tch::Device::Cpu)),
+        mask: Tensor::ones([b], (Kind::Float, tch::Device::Cpu)),
+        next_obs: Tensor::randn([b, 42], (Kind::Float, tch::Device::Cpu)),
+    };
+    let noise = Tensor::randn([b, 8], (Kind::Float, tch::Device::Cpu));
+    let params: Vec<Tensor> = sac.critic_vars().trainable_variables();
+    let _ = 0; time("critic forward nograd", 20, || { let _ = tch::no_grad(|| sac.critic().forward(&mb.obs, &mb.action)); });
+    let _ = 0; time("critic forward grad", 20, || { let _ = sac.critic().forward(&mb.obs, &mb.action); });
+    let _ = 0; time("target (actor + select + fwd)", 20, || { let _ = tch::no_grad(|| { let a = sac.actor().sample(&mb.next_obs, &noise); sac.target_critic().select(&[1,5]).forward(&mb.next_obs, &a.action) }); });
+    let _ = 0; time("critic loss", 20, || { let _ = sac.critic_loss(&mb, &[1, 5], &noise); });
+    let _ = 0; time("critic loss + backward", 20, || { let (l, _) = sac.critic_loss(&mb, &[1, 5], &noise); Tensor::run_backward(&[l], &params, false, false); });
+    let _ = 0; time("update_critic (incl adam+polyak)", 20, || { sac.update_critic(&mb); });
+    let _ = 0; time("actor loss", 20, || { let _ = sac.actor_loss(&mb.obs, &noise); });
+    let aparams: Vec<Tensor> = sac.actor_vars().trainable_variables();
+    let _ = 0; time("actor loss + backward", 20, || { let (l, _) = sac.actor_loss(&mb.obs, &noise); Tensor::run_backward(&[l], &aparams, false, false); });
+    let _ = 0; time("update_actor", 20, || { sac.update_actor(&mb.obs); });
+    let (_, opt) = &mut sac.optimizers_mut()[1];
+    let grads: Vec<Tensor> = opt.params().iter().map(|p| p.randn_like()).collect();
+    let _ = 0; time("critic adam step", 20, || { opt.step(grads.iter().map(|g| g.copy()).collect()); });
+    let _ = 0; time("grad copies (baseline for adam)", 20, || { let _g: Vec<Tensor> = grads.iter().map(|g| g.copy()).collect(); });
+}
