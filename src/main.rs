@@ -50,6 +50,9 @@ enum Command {
         /// Seconds of load.
         #[arg(long, default_value_t = 10.0)]
         seconds: f64,
+        /// Load this running curriculum server instead of starting one (e.g. http://127.0.0.1:50051).
+        #[arg(long, value_name = "ADDR")]
+        connect: Option<String>,
     },
     /// Run configurations.
     Config {
@@ -130,8 +133,8 @@ fn run(cli: Cli) -> Result<()> {
             bail!("`rfcl train` is not built yet (issue 6): the config resolves, but no run was started")
         }
         Command::Eval { run_dir, .. } => bail!("`rfcl eval {}` is not built yet (issue 6)", run_dir.display()),
-        Command::Bench { target, clients, seconds } => match target.as_str() {
-            "curriculum" => bench_curriculum(clients, seconds),
+        Command::Bench { target, clients, seconds, connect } => match target.as_str() {
+            "curriculum" => bench_curriculum(clients, seconds, connect),
             other => bail!("`rfcl bench {other}` is not built yet (learner: issue 5; actor, e2e: issue 6); available: curriculum"),
         },
     }
@@ -151,7 +154,7 @@ fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Resu
     let set = demos::demo_set(demos::generate_demos(num as usize, seed), out);
     set.write(out)?;
     let lengths: Vec<usize> = set.demos.iter().map(|d| d.len()).collect();
-    println!(
+    eprintln!(
         "wrote {num} successful PointMaze demos to {} (+ {}), lengths {lengths:?}",
         out.display(),
         rfcl_core::demo::DemoSet::sidecar_path(out).display()
@@ -160,9 +163,16 @@ fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Resu
 }
 
 /// Acquire + Report pairs against the `curriculum-server` binary on loopback, with PointMaze demos.
-fn bench_curriculum(clients: usize, seconds: f64) -> Result<()> {
+fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Result<()> {
     use std::io::{BufRead, BufReader};
     use std::process::{Command, Stdio};
+    let duration = std::time::Duration::from_secs_f64(seconds);
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    if let Some(addr) = connect {
+        let result = rt.block_on(rfcl_curriculum::bench::acquire_report(&addr, clients, duration))?;
+        println!("{}", serde_json::to_string_pretty(&serde_json::json!({"bench": "curriculum_acquire_report", "server": addr, "result": result}))?);
+        return Ok(());
+    }
     let dir = tempfile::tempdir()?;
     let demos = dir.path().join("demos.h5");
     generate_demos("pointmaze", 5, &demos, 0)?;
@@ -184,8 +194,7 @@ fn bench_curriculum(clients: usize, seconds: f64) -> Result<()> {
         let _ = child.kill();
         bail!("curriculum-server did not start: {line:?}");
     };
-    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
-    let result = rt.block_on(rfcl_curriculum::bench::acquire_report(&addr, clients, std::time::Duration::from_secs_f64(seconds)));
+    let result = rt.block_on(rfcl_curriculum::bench::acquire_report(&addr, clients, duration));
     let _ = child.kill();
     let _ = child.wait();
     let result = result?;

@@ -16,7 +16,7 @@ fn time<F: FnMut()>(name: &str, n: usize, mut f: F) {
 
 fn main() {
     let threads: i32 = std::env::var("T").map(|t| t.parse().unwrap()).unwrap_or(1);
-    tch::set_num_threads(threads);
+    rfcl_learner::runtime::configure_cpu(threads);
     let cfg = SacConfig::default();
     let net = NetworkConfig::default();
     let mut sac = Sac::new(42, 8, &cfg, &net, 0).unwrap();
@@ -40,6 +40,11 @@ fn main() {
     let aparams: Vec<Tensor> = sac.actor_vars().trainable_variables();
     let _ = 0; time("actor loss + backward", 20, || { let (l, _) = sac.actor_loss(&mb.obs, &noise); Tensor::run_backward(&[l], &aparams, false, false); });
     let _ = 0; time("update_actor", 20, || { sac.update_actor(&mb.obs); });
+    let pairs: Vec<(Tensor, Tensor)> = sac.target_critic_vars().trainable_variables().into_iter().zip(sac.critic_vars().trainable_variables()).collect();
+    let tv = sac.target_critic_vars().variables(); let cv = sac.critic_vars().variables();
+    let pairs: Vec<(Tensor, Tensor)> = tv.iter().map(|(k, t)| (t.shallow_clone(), cv[k].shallow_clone())).collect();
+    time("polyak", 20, || rfcl_learner::sac::polyak_update(&pairs, 0.005));
+    time("critic loss + backward + adam", 20, || { let (l, _) = sac.critic_loss(&mb, &[1, 5], &noise); let g = Tensor::run_backward(&[l], &sac.optimizers()[1].1.params(), false, false); sac.optimizers_mut()[1].1.step(g); });
     let (_, opt) = &mut sac.optimizers_mut()[1];
     let grads: Vec<Tensor> = opt.params().iter().map(|p| p.randn_like()).collect();
     let _ = 0; time("critic adam step", 20, || { opt.step(grads.iter().map(|g| g.copy()).collect()); });

@@ -57,7 +57,7 @@ impl Adam {
         self.step += 1;
         let bias1 = 1.0 - self.beta1.powi(self.step as i32);
         let bias2_sqrt = (1.0 - self.beta2.powi(self.step as i32)).sqrt();
-        // m̂ / (√v̂ + ε) = (√c2 / c1) · m / (√v + ε·√c2)
+        // lr · m̂ / (√v̂ + ε) = m / ((√v + ε·√c2) · c1 / (lr · √c2))
         let step_size = self.lr * bias2_sqrt / bias1;
         let eps = self.eps * bias2_sqrt;
         tch::no_grad(|| {
@@ -68,9 +68,8 @@ impl Adam {
                 let _ = v.lerp_(&grad, 1.0 - self.beta2);
                 let _ = v.sqrt_out(denom);
                 let _ = denom.g_add_scalar_(eps);
-                let _ = m.div_out(denom, denom);
-                let _ = denom.g_mul_scalar_(-step_size);
-                let _ = self.params[i].1.g_add_(denom);
+                let _ = denom.g_mul_scalar_(-1.0 / step_size);
+                let _ = self.params[i].1.addcdiv_(m, denom);
             }
         });
     }

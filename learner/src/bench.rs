@@ -26,7 +26,7 @@ pub struct BenchConfig {
     /// (G, F) pairs.
     pub schedules: Vec<(u32, u32)>,
     pub matmul_precision: MatmulPrecision,
-    /// libtorch intra-op threads (`tch::set_num_threads`).
+    /// libtorch intra-op threads (see [`crate::runtime::configure_cpu`]).
     pub threads: i32,
     /// Untimed iterations before measuring, per schedule.
     pub warmup_iterations: u32,
@@ -87,7 +87,7 @@ pub struct BenchReport {
 
 /// Runs every schedule of `cfg` and returns the measurements (print them with `serde_json`).
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
-    tch::set_num_threads(cfg.threads);
+    let runtime = crate::runtime::configure_cpu(cfg.threads);
     let net = NetworkConfig {
         actor_features: cfg.hidden.clone(),
         critic_features: cfg.hidden.clone(),
@@ -144,7 +144,10 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             batch_seconds_per_iteration: batch_time.as_secs_f64() / iterations as f64,
         });
     }
-    Ok(BenchReport { config: cfg.clone(), device: format!("{:?}, {} threads", tch::Device::Cpu, tch::get_num_threads()), results })
+    Ok(BenchReport { config: cfg.clone(), device: format!(
+            "cpu, {} threads, allocator tuned: {}",
+            runtime.threads, runtime.allocator_tuned
+        ), results })
 }
 
 /// Uniform random transitions in [-1, 1] (the maths do not care about the values).

@@ -10,14 +10,14 @@
 //! * [`batch`]: the tensors one iteration consumes.
 //! * [`bench`]: updates/s and FLOPs of the SAC update (`rfcl bench learner`).
 //!
-//! Thread count is the caller's choice (`tch::set_num_threads`); libtorch defaults to one thread
-//! per core.
+//! * [`runtime`]: process-wide CPU settings (threads, allocator) for the SAC maths.
 pub mod adam;
 pub mod batch;
 pub mod bench;
 pub mod error;
 pub mod nets;
 pub mod replay;
+pub mod runtime;
 pub mod sac;
 
 pub use batch::{Batch, HostBatch};

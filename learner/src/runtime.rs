@@ -1,0 +1,46 @@
+//! Process-wide CPU settings for the SAC maths (design/STACK.md, "The SAC update on this CPU").
+//! Call [`configure_cpu`] once, early, in a process that runs SAC updates on the CPU.
+//!
+//! * **Threads**: libtorch's intra-op thread count (`tch::set_num_threads`).
+//! * **Allocator**: libtorch takes every activation and gradient (MBs each) from `malloc`. glibc
+//!   serves such blocks with fresh `mmap`s (its dynamic mmap threshold starts at 128 KiB) and trims
+//!   the heap top eagerly, so each update faults its working set back in page by page: about 15-25 %
+//!   of an update's CPU time here. Raising `M_MMAP_THRESHOLD` to glibc's 32 MiB maximum and
+//!   `M_TRIM_THRESHOLD` to 1 GiB keeps that memory in the heap between updates.
+//!
+//! Not settable from here: OpenMP's wait policy. libgomp reads `OMP_WAIT_POLICY` when it loads,
+//! before `main`; with more than one thread on cores that other processes also use, its spinning
+//! barriers make an update several times slower. The process's launcher should set
+//! `OMP_WAIT_POLICY=PASSIVE` (or use one thread) where the learner shares cores with actors.
+
+/// What [`configure_cpu`] applied.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CpuRuntime {
+    pub threads: i32,
+    /// Whether the glibc allocator settings were applied (false on other C libraries).
+    pub allocator_tuned: bool,
+}
+
+/// Sets libtorch's thread count and tunes glibc's allocator for libtorch's large, short-lived
+/// blocks (see the module docs).
+pub fn configure_cpu(threads: i32) -> CpuRuntime {
+    tch::set_num_threads(threads);
+    CpuRuntime { threads: tch::get_num_threads(), allocator_tuned: tune_glibc_malloc() }
+}
+
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn tune_glibc_malloc() -> bool {
+    const MMAP_THRESHOLD_MAX: libc::c_int = 32 << 20;
+    const TRIM_THRESHOLD: libc::c_int = 1 << 30;
+    // SAFETY: mallopt only changes glibc's allocation thresholds; it takes no pointers and is
+    // thread-safe (it takes the arena locks).
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX) == 1
+            && libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn tune_glibc_malloc() -> bool {
+    false
+}
