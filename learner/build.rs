@@ -51,7 +51,10 @@ fn libtorch_lib_dir() -> Option<PathBuf> {
     }
     let python = std::env::var("PYTHON_SYS_EXECUTABLE").unwrap_or_else(|_| "python3".into());
     let out = Command::new(python)
-        .args(["-c", "import torch, os; print(os.path.dirname(torch.__file__) + '/lib')"])
+        .args([
+            "-c",
+            "import torch, os; print(os.path.dirname(torch.__file__) + '/lib')",
+        ])
         .output()
         .ok()?;
     let dir = PathBuf::from(String::from_utf8(out.stdout).ok()?.trim());

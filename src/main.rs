@@ -10,7 +10,11 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "rfcl", version, about = "Reverse Forward Curriculum Learning as a distributed actor-learner service")]
+#[command(
+    name = "rfcl",
+    version,
+    about = "Reverse Forward Curriculum Learning as a distributed actor-learner service"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -102,7 +106,10 @@ enum ConfigCommand {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).with_writer(std::io::stderr).init();
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .init();
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
@@ -167,10 +174,19 @@ fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Re
     use std::io::{BufRead, BufReader};
     use std::process::{Command, Stdio};
     let duration = std::time::Duration::from_secs_f64(seconds);
-    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
     if let Some(addr) = connect {
-        let result = rt.block_on(rfcl_curriculum::bench::acquire_report(&addr, clients, duration))?;
-        println!("{}", serde_json::to_string_pretty(&serde_json::json!({"bench": "curriculum_acquire_report", "server": addr, "result": result}))?);
+        let result = rt.block_on(rfcl_curriculum::bench::acquire_report(
+            &addr, clients, duration,
+        ))?;
+        println!(
+            "{}",
+            serde_json::to_string_pretty(
+                &serde_json::json!({"bench": "curriculum_acquire_report", "server": addr, "result": result})
+            )?
+        );
         return Ok(());
     }
     let dir = tempfile::tempdir()?;
@@ -181,7 +197,13 @@ fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Re
     std::fs::write(&config, "name: bench\nenv:\n  suite: pointmaze\n  env_id: PointMaze-v0\nservice:\n  lease_timeout_s: 600\n")?;
     let server_bin = std::env::current_exe()?.with_file_name("curriculum-server");
     let mut child = Command::new(&server_bin)
-        .args(["--demos", demos.to_str().unwrap(), "--config", config.to_str().unwrap(), "--run-dir"])
+        .args([
+            "--demos",
+            demos.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+            "--run-dir",
+        ])
         .arg(dir.path().join("run"))
         .env("RUST_LOG", "warn")
         .stdout(Stdio::piped())
@@ -189,12 +211,18 @@ fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Re
         .with_context(|| format!("starting {}", server_bin.display()))?;
     let mut line = String::new();
     BufReader::new(child.stdout.take().unwrap()).read_line(&mut line)?;
-    let addr = line.split("grpc=").nth(1).and_then(|s| s.split_whitespace().next()).map(|a| format!("http://{a}"));
+    let addr = line
+        .split("grpc=")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next())
+        .map(|a| format!("http://{a}"));
     let Some(addr) = addr else {
         let _ = child.kill();
         bail!("curriculum-server did not start: {line:?}");
     };
-    let result = rt.block_on(rfcl_curriculum::bench::acquire_report(&addr, clients, duration));
+    let result = rt.block_on(rfcl_curriculum::bench::acquire_report(
+        &addr, clients, duration,
+    ));
     let _ = child.kill();
     let _ = child.wait();
     let result = result?;

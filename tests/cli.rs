@@ -4,11 +4,18 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn rfcl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_rfcl")).args(args).output().expect("running rfcl")
+    Command::new(env!("CARGO_BIN_EXE_rfcl"))
+        .args(args)
+        .output()
+        .expect("running rfcl")
 }
 
 fn error_lines(out: &Output) -> Vec<String> {
-    String::from_utf8_lossy(&out.stderr).lines().filter(|l| l.starts_with("error:")).map(str::to_string).collect()
+    String::from_utf8_lossy(&out.stderr)
+        .lines()
+        .filter(|l| l.starts_with("error:"))
+        .map(str::to_string)
+        .collect()
 }
 
 fn yaml_files(dir: &Path, out: &mut Vec<PathBuf>) {
@@ -28,18 +35,32 @@ fn help_lists_the_subcommands() {
     assert!(out.status.success());
     let help = String::from_utf8_lossy(&out.stdout);
     for sub in ["train", "demos", "eval", "bench", "config"] {
-        assert!(help.lines().any(|l| l.trim_start().starts_with(sub)), "`{sub}` missing from:\n{help}");
+        assert!(
+            help.lines().any(|l| l.trim_start().starts_with(sub)),
+            "`{sub}` missing from:\n{help}"
+        );
     }
 }
 
 #[test]
 fn every_preset_resolves_with_config_show() {
     let mut files = Vec::new();
-    yaml_files(&Path::new(env!("CARGO_MANIFEST_DIR")).join("configs"), &mut files);
-    assert!(files.len() > 40, "presets for every suite and task, both sets");
+    yaml_files(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("configs"),
+        &mut files,
+    );
+    assert!(
+        files.len() > 40,
+        "presets for every suite and task, both sets"
+    );
     for file in files {
         let out = rfcl(&["config", "show", file.to_str().unwrap()]);
-        assert!(out.status.success(), "{}: {}", file.display(), String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}: {}",
+            file.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
         let yaml = String::from_utf8_lossy(&out.stdout);
         assert!(yaml.contains("reverse:") && yaml.contains("forward:") && yaml.contains("sac:"));
     }
@@ -48,8 +69,18 @@ fn every_preset_resolves_with_config_show() {
 #[test]
 fn overrides_apply() {
     let cfg = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/pointmaze.yml");
-    let out = rfcl(&["config", "show", cfg, "sac.batch_size=128", "network.actor_features=[64,64]"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = rfcl(&[
+        "config",
+        "show",
+        cfg,
+        "sac.batch_size=128",
+        "network.actor_features=[64,64]",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let yaml = String::from_utf8_lossy(&out.stdout);
     assert!(yaml.contains("batch_size: 128"), "{yaml}");
 }
@@ -63,13 +94,22 @@ fn a_misspelt_key_is_one_clear_error_line() {
     assert!(!out.status.success());
     let lines = error_lines(&out);
     assert_eq!(lines.len(), 1, "{lines:?}");
-    assert!(lines[0].contains("typo.yml") && lines[0].contains("sac.batch_sise") && lines[0].contains("did you mean 'sac.batch_size'"), "{}", lines[0]);
+    assert!(
+        lines[0].contains("typo.yml")
+            && lines[0].contains("sac.batch_sise")
+            && lines[0].contains("did you mean 'sac.batch_size'"),
+        "{}",
+        lines[0]
+    );
 
     let cfg = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/pointmaze.yml");
     let out = rfcl(&["config", "show", cfg, "sac.tau=7"]);
     assert!(!out.status.success());
     let lines = error_lines(&out);
-    assert!(lines.len() == 1 && lines[0].contains("sac.tau"), "{lines:?}");
+    assert!(
+        lines.len() == 1 && lines[0].contains("sac.tau"),
+        "{lines:?}"
+    );
 }
 
 #[test]
@@ -81,9 +121,17 @@ fn a_corrupt_demo_file_is_one_clear_error_line() {
     assert!(!out.status.success());
     let lines = error_lines(&out);
     assert_eq!(lines.len(), 1, "{lines:?}");
-    assert!(lines[0].contains("demos.h5") && lines[0].to_lowercase().contains("hdf5"), "{}", lines[0]);
+    assert!(
+        lines[0].contains("demos.h5") && lines[0].to_lowercase().contains("hdf5"),
+        "{}",
+        lines[0]
+    );
 
-    let out = rfcl(&["demos", "inspect", dir.path().join("missing.h5").to_str().unwrap()]);
+    let out = rfcl(&[
+        "demos",
+        "inspect",
+        dir.path().join("missing.h5").to_str().unwrap(),
+    ]);
     assert!(!out.status.success());
     assert!(error_lines(&out)[0].contains("missing.h5"));
 }
@@ -92,17 +140,40 @@ fn a_corrupt_demo_file_is_one_clear_error_line() {
 fn generated_pointmaze_demos_inspect_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("pm.h5");
-    let out = rfcl(&["demos", "generate", "--env", "pointmaze", "-n", "3", "--out", file.to_str().unwrap()]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = rfcl(&[
+        "demos",
+        "generate",
+        "--env",
+        "pointmaze",
+        "-n",
+        "3",
+        "--out",
+        file.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let out = rfcl(&["demos", "inspect", file.to_str().unwrap()]);
     assert!(out.status.success());
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.contains("episodes: 3 (3 successful)") && text.contains("obs 7, action 2"), "{text}");
+    assert!(
+        text.contains("episodes: 3 (3 successful)") && text.contains("obs 7, action 2"),
+        "{text}"
+    );
 }
 
 #[test]
 fn unbuilt_subcommands_say_so_and_fail() {
-    let out = rfcl(&["demos", "generate", "--env", "PickCube-v1", "--out", "/tmp/never.h5"]);
+    let out = rfcl(&[
+        "demos",
+        "generate",
+        "--env",
+        "PickCube-v1",
+        "--out",
+        "/tmp/never.h5",
+    ]);
     assert!(!out.status.success());
     assert!(error_lines(&out)[0].contains("not built yet"));
 }

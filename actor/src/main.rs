@@ -5,7 +5,11 @@ use std::process::ExitCode;
 use clap::Parser;
 
 #[derive(Parser)]
-#[command(name = "actor", version, about = "RFCL actor: steps envs with the latest policy and streams transitions to the learner")]
+#[command(
+    name = "actor",
+    version,
+    about = "RFCL actor: steps envs with the latest policy and streams transitions to the learner"
+)]
 struct Args {
     /// Learner address, e.g. http://127.0.0.1:50051.
     #[arg(long, value_name = "ADDR")]
@@ -26,6 +30,9 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    eprintln!("error: the actor service is not built yet (issue 6); asked to connect to {}", args.connect);
+    eprintln!(
+        "error: the actor service is not built yet (issue 6); asked to connect to {}",
+        args.connect
+    );
     ExitCode::FAILURE
 }

@@ -4,6 +4,10 @@
 //! the two.
 use serde::{Deserialize, Serialize};
 
+/// Seed and options for the simulator's reset, applied before any env state (spec 2.4): the same
+/// type the demo files carry.
+pub use crate::demo::ResetArgs;
+
 /// What kind of reset a lease asks for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum LeaseKind {
@@ -13,14 +17,6 @@ pub enum LeaseKind {
     Level,
     /// Evaluation on a held-out seed of the true initial-state distribution (spec 5.7).
     Eval,
-}
-
-/// Seed and options for the simulator's reset, applied before any env state (spec 2.4).
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-pub struct ResetArgs {
-    pub seed: Option<u64>,
-    /// A JSON object (empty when there are no options).
-    pub options: serde_json::Map<String, serde_json::Value>,
 }
 
 /// Where one episode starts, handed out by the curriculum server.

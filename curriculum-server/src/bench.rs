@@ -23,7 +23,11 @@ pub struct AcquireReportResult {
 /// Runs `clients` concurrent clients (one connection each) for `duration`; each loops Acquire, then
 /// Report with a random outcome (success more likely near the end of a demo, so the curriculum
 /// moves). Latency is that of one Acquire + Report pair.
-pub async fn acquire_report(addr: &str, clients: usize, duration: Duration) -> anyhow::Result<AcquireReportResult> {
+pub async fn acquire_report(
+    addr: &str,
+    clients: usize,
+    duration: Duration,
+) -> anyhow::Result<AcquireReportResult> {
     let mut conns = Vec::with_capacity(clients);
     for _ in 0..clients {
         conns.push(CurriculumClient::connect(addr.to_string()).await?);
@@ -40,7 +44,11 @@ pub async fn acquire_report(addr: &str, clients: usize, duration: Duration) -> a
                 let mut errors = 0u64;
                 while Instant::now() < deadline {
                     let t0 = Instant::now();
-                    let req = v1::AcquireRequest { actor_id: i as u32, env_index: 0, eval: false };
+                    let req = v1::AcquireRequest {
+                        actor_id: i as u32,
+                        env_index: 0,
+                        eval: false,
+                    };
                     let lease = match client.acquire(req).await {
                         Ok(l) => l.into_inner(),
                         Err(_) => {
@@ -48,7 +56,8 @@ pub async fn acquire_report(addr: &str, clients: usize, duration: Duration) -> a
                             continue;
                         }
                     };
-                    let near_end = lease.kind != v1::LeaseKind::DemoState as i32 || lease.time_limit <= 20;
+                    let near_end =
+                        lease.kind != v1::LeaseKind::DemoState as i32 || lease.time_limit <= 20;
                     let success = rng.random_bool(if near_end { 0.9 } else { 0.3 });
                     let report = v1::EpisodeReport {
                         lease_id: lease.lease_id,

@@ -226,7 +226,14 @@ mod tests {
         }
         assert_eq!(t.take_for_report(4, 0), Err(ReportRefusal::Duplicate(4)));
         assert_eq!(t.take_for_report(0, 0), Err(ReportRefusal::Unknown(0)));
-        assert_eq!(t.take_for_report(t.granted_total() + 1, 0), Err(ReportRefusal::Unknown(t.granted_total() + 1)));
-        assert_eq!(serde_json::to_string(&t).unwrap().len() < 300, true, "no per-report memory");
+        assert_eq!(
+            t.take_for_report(t.granted_total() + 1, 0),
+            Err(ReportRefusal::Unknown(t.granted_total() + 1))
+        );
+        assert_eq!(
+            serde_json::to_string(&t).unwrap().len() < 300,
+            true,
+            "no per-report memory"
+        );
     }
 }

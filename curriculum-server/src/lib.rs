@@ -22,9 +22,9 @@ pub use reverse::{DemoMeta, DemoProgress, ReportEffect, Reverse, StartChoice};
 pub use stage::{Stage, StageChange, StageMachine};
 
 // The service around the pure logic.
+pub mod bench;
 pub mod dashboard;
 pub mod leases;
 pub mod server;
 pub mod service;
 pub mod snapshot;
-pub mod bench;

@@ -47,14 +47,7 @@ impl DemoResets {
         DemoResets {
             state_dim: demos.state_dim,
             states: demos.demos.iter().map(|d| d.env_states.clone()).collect(),
-            reset: demos
-                .demos
-                .iter()
-                .map(|d| ResetArgs {
-                    seed: d.reset.seed,
-                    options: d.reset.options.as_object().cloned().unwrap_or_default(),
-                })
-                .collect(),
+            reset: demos.demos.iter().map(|d| d.reset.clone()).collect(),
         }
     }
 

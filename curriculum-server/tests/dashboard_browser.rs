@@ -48,7 +48,15 @@ async fn chromium_renders_the_demo_bars() {
     // Some progress so the page has something to show.
     let mut client = server.client().await;
     for _ in 0..30 {
-        let lease = client.acquire(rfcl_proto::v1::AcquireRequest { actor_id: 2, env_index: 0, eval: false }).await.unwrap().into_inner();
+        let lease = client
+            .acquire(rfcl_proto::v1::AcquireRequest {
+                actor_id: 2,
+                env_index: 0,
+                eval: false,
+            })
+            .await
+            .unwrap()
+            .into_inner();
         let report = rfcl_proto::v1::EpisodeReport {
             lease_id: lease.lease_id,
             success_at_end: true,
@@ -66,11 +74,23 @@ async fn chromium_renders_the_demo_bars() {
 
     let out = {
         let _guard = hdf5_fork_guard();
-        headless(&dir.path().join("profile")).arg("--dump-dom").arg(&server.dashboard).output().unwrap()
+        headless(&dir.path().join("profile"))
+            .arg("--dump-dom")
+            .arg(&server.dashboard)
+            .output()
+            .unwrap()
     };
-    assert!(out.status.success(), "chromium failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "chromium failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let dom = String::from_utf8_lossy(&out.stdout);
-    assert_eq!(dom.matches("class=\"demo-bar\"").count(), 3, "one bar row per demo:\n{dom}");
+    assert_eq!(
+        dom.matches("class=\"demo-bar\"").count(),
+        3,
+        "one bar row per demo:\n{dom}"
+    );
     assert!(dom.contains("<svg"), "charts are inline SVG");
     assert!(dom.contains("demo 2"), "the bar chart labels the demos");
     assert!(dom.contains("stage <b>1</b>"));
@@ -90,17 +110,28 @@ async fn chromium_renders_the_demo_bars() {
     };
     assert!(status.success());
     let png = std::fs::read(&shot).unwrap();
-    assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000, "a real screenshot, {} bytes", png.len());
+    assert!(
+        png.starts_with(b"\x89PNG") && png.len() > 10_000,
+        "a real screenshot, {} bytes",
+        png.len()
+    );
 
     // /api/state and /metrics describe the same state.
     let get = |path: &str| {
-        let out = Command::new("curl").args(["-sf", &format!("{}{}", server.dashboard, path)]).output().unwrap();
+        let out = Command::new("curl")
+            .args(["-sf", &format!("{}{}", server.dashboard, path)])
+            .output()
+            .unwrap();
         assert!(out.status.success(), "GET {path} failed");
         String::from_utf8(out.stdout).unwrap()
     };
-    let view: rfcl_curriculum::dashboard::DashboardView = serde_json::from_str(&get("api/state")).unwrap();
+    let view: rfcl_curriculum::dashboard::DashboardView =
+        serde_json::from_str(&get("api/state")).unwrap();
     assert_eq!(view.episodes, 30);
     let metrics = get("metrics");
-    assert!(metrics.contains("rfcl_curriculum_episodes_total 30"), "{metrics}");
+    assert!(
+        metrics.contains("rfcl_curriculum_episodes_total 30"),
+        "{metrics}"
+    );
     assert!(metrics.contains("rfcl_curriculum_leases_granted_total 30"));
 }

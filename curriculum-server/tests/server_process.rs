@@ -14,7 +14,11 @@ use rfcl_curriculum::snapshot;
 use rfcl_proto::v1;
 
 fn acquire_req(actor_id: u32) -> v1::AcquireRequest {
-    v1::AcquireRequest { actor_id, env_index: 0, eval: false }
+    v1::AcquireRequest {
+        actor_id,
+        env_index: 0,
+        eval: false,
+    }
 }
 
 fn report_for(lease: &v1::ResetLease, success: bool, ret: f64) -> v1::EpisodeReport {
@@ -33,7 +37,11 @@ fn report_for(lease: &v1::ResetLease, success: bool, ret: f64) -> v1::EpisodeRep
 }
 
 /// Success is more likely near the demo's end (easy states) than at its start.
-fn synthetic_outcome(rng: &mut ChaCha8Rng, lease: &v1::ResetLease, demo_states: u32) -> (bool, f64) {
+fn synthetic_outcome(
+    rng: &mut ChaCha8Rng,
+    lease: &v1::ResetLease,
+    demo_states: u32,
+) -> (bool, f64) {
     if lease.kind == v1::LeaseKind::DemoState as i32 {
         let frac = lease.start_index as f64 / (demo_states - 1) as f64;
         let success = rng.random_bool(0.35 + 0.65 * frac);
@@ -44,8 +52,15 @@ fn synthetic_outcome(rng: &mut ChaCha8Rng, lease: &v1::ResetLease, demo_states: 
     }
 }
 
-async fn state_view(client: &mut v1::curriculum_client::CurriculumClient<tonic::transport::Channel>) -> DashboardView {
-    let json = client.get_state(v1::GetStateRequest {}).await.unwrap().into_inner().json;
+async fn state_view(
+    client: &mut v1::curriculum_client::CurriculumClient<tonic::transport::Channel>,
+) -> DashboardView {
+    let json = client
+        .get_state(v1::GetStateRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .json;
     serde_json::from_str(&json).unwrap()
 }
 
@@ -63,7 +78,11 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     let demos = write_demos(dir.path(), 3, 20);
     let config = write_config(dir.path(), 30.0);
     let run_dir = dir.path().join("run");
-    let (d, c, r) = (demos.to_str().unwrap(), config.to_str().unwrap(), run_dir.to_str().unwrap());
+    let (d, c, r) = (
+        demos.to_str().unwrap(),
+        config.to_str().unwrap(),
+        run_dir.to_str().unwrap(),
+    );
     let mut server = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
     let mut client = server.client().await;
 
@@ -71,26 +90,45 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     assert_eq!(initial.stage, 1);
     assert_eq!(initial.demos.len(), 3);
     // S_i = 21 states (no truncation: 5 success steps), t_i starts at S_i - 1.
-    assert!(initial.demos.iter().all(|d| d.states == 21 && d.t == 20 && !d.solved));
+    assert!(initial
+        .demos
+        .iter()
+        .all(|d| d.states == 21 && d.t == 20 && !d.solved));
 
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let mut stage_2_reports = 0;
     let mut reports = 0;
     while stage_2_reports < 37 {
         reports += 1;
-        assert!(reports < 20_000, "stage 1 did not end within 20000 episodes");
+        assert!(
+            reports < 20_000,
+            "stage 1 did not end within 20000 episodes"
+        );
         let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
         if lease.kind == v1::LeaseKind::DemoState as i32 {
-            assert_eq!(lease.env_state, vec![lease.demo_id as f32, lease.start_index as f32, 0.5, -0.5]);
-            assert_eq!(lease.reset.as_ref().unwrap().seed, 100 + lease.demo_id as u64);
+            assert_eq!(
+                lease.env_state,
+                vec![lease.demo_id as f32, lease.start_index as f32, 0.5, -0.5]
+            );
+            assert_eq!(
+                lease.reset.as_ref().unwrap().seed,
+                100 + lease.demo_id as u64
+            );
             assert!(lease.time_limit >= 16 && lease.time_limit <= 100);
         } else {
             stage_2_reports += 1;
             assert_eq!(lease.stage, 2);
-            assert_eq!(lease.time_limit, 100, "stage-2 episodes run the env horizon");
+            assert_eq!(
+                lease.time_limit, 100,
+                "stage-2 episodes run the env horizon"
+            );
         }
         let (success, ret) = synthetic_outcome(&mut rng, &lease, 21);
-        let ack = client.report(report_for(&lease, success, ret)).await.unwrap().into_inner();
+        let ack = client
+            .report(report_for(&lease, success, ret))
+            .await
+            .unwrap()
+            .into_inner();
         assert!(ack.applied);
     }
     let before_kill = state_view(&mut client).await;
@@ -98,7 +136,11 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     assert_eq!(before_kill.stage_epoch, 1);
     assert!(before_kill.demos.iter().all(|d| d.solved && d.t == 0));
     assert!(before_kill.stage_1_env_steps.unwrap() > 0);
-    assert_eq!(before_kill.levels.len(), 10 + 3, "10 seeds + 3 demo starts (deviation 3)");
+    assert_eq!(
+        before_kill.levels.len(),
+        10 + 3,
+        "10 seeds + 3 demo starts (deviation 3)"
+    );
 
     // Kill -9: no final snapshot. The last periodic snapshot is what a restart must continue from.
     tokio::time::sleep(std::time::Duration::from_millis(300)).await;
@@ -110,7 +152,11 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     let mut restarted = ServerProcess::start(&["--demos", d, "--config", c, "--resume", r]);
     let mut client = restarted.client().await;
     let resumed = state_view(&mut client).await;
-    let snap_view = snap.view("ctest", "PointMaze-v0", rfcl_curriculum::service::unix_now());
+    let snap_view = snap.view(
+        "ctest",
+        "PointMaze-v0",
+        rfcl_curriculum::service::unix_now(),
+    );
     assert_eq!(curriculum_part(&resumed), curriculum_part(&snap_view));
 
     // The restarted server hands out exactly what the snapshot's state hands out in-process.
@@ -122,9 +168,19 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     let resets = DemoResets::from_demos(&set);
     for _ in 0..25 {
         let expected: ResetLease = snap
-            .acquire(AcquireRequest { actor_id: 0, env_index: 0, eval: false }, &cfg, &resets, 0.0)
+            .acquire(
+                AcquireRequest {
+                    actor_id: 0,
+                    env_index: 0,
+                    eval: false,
+                },
+                &cfg,
+                &resets,
+                0.0,
+            )
             .unwrap();
-        let got = ResetLease::try_from(client.acquire(acquire_req(0)).await.unwrap().into_inner()).unwrap();
+        let got = ResetLease::try_from(client.acquire(acquire_req(0)).await.unwrap().into_inner())
+            .unwrap();
         assert_eq!(got, expected);
     }
     // A clean stop writes a final snapshot and exits 0.
@@ -156,7 +212,11 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     malformed.lease_id = 0;
     let status = client.report(malformed).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::InvalidArgument);
-    assert!(status.message().contains("EpisodeReport.lease_id"), "{}", status.message());
+    assert!(
+        status.message().contains("EpisodeReport.lease_id"),
+        "{}",
+        status.message()
+    );
 
     let mut nan = report_for(&lease, true, 1.0);
     nan.episode_return = f64::NAN;
@@ -168,27 +228,60 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     unknown.lease_id = 999_999;
     let status = client.report(unknown).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::NotFound);
-    assert!(status.message().contains("lease 999999 is unknown"), "{}", status.message());
+    assert!(
+        status.message().contains("lease 999999 is unknown"),
+        "{}",
+        status.message()
+    );
 
     let mut other_epoch = report_for(&lease, true, 1.0);
     other_epoch.stage_epoch = 5;
     let status = client.report(other_epoch).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::FailedPrecondition);
-    assert!(status.message().contains("stage epoch 0") && status.message().contains("says 5"), "{}", status.message());
+    assert!(
+        status.message().contains("stage epoch 0") && status.message().contains("says 5"),
+        "{}",
+        status.message()
+    );
 
-    assert_eq!(curriculum_part(&state_view(&mut client).await), before, "refused reports changed the curriculum");
+    assert_eq!(
+        curriculum_part(&state_view(&mut client).await),
+        before,
+        "refused reports changed the curriculum"
+    );
 
     // The real report applies once; its repeat is acknowledged and changes nothing.
-    assert!(client.report(report_for(&lease, true, 1.0)).await.unwrap().into_inner().applied);
+    assert!(
+        client
+            .report(report_for(&lease, true, 1.0))
+            .await
+            .unwrap()
+            .into_inner()
+            .applied
+    );
     let after_one = curriculum_part(&state_view(&mut client).await);
     assert_ne!(after_one, before);
-    assert!(!client.report(report_for(&lease, true, 1.0)).await.unwrap().into_inner().applied);
+    assert!(
+        !client
+            .report(report_for(&lease, true, 1.0))
+            .await
+            .unwrap()
+            .into_inner()
+            .applied
+    );
     assert_eq!(curriculum_part(&state_view(&mut client).await), after_one);
 
     let view = state_view(&mut client).await;
     let r = view.refused_reports;
-    assert_eq!((r.malformed, r.unknown, r.epoch_mismatch, r.duplicate), (2, 1, 1, 1));
-    assert_eq!(view.actors.len(), 1, "the actor is listed with its last-seen time");
+    assert_eq!(
+        (r.malformed, r.unknown, r.epoch_mismatch, r.duplicate),
+        (2, 1, 1, 1)
+    );
+    assert_eq!(
+        view.actors.len(),
+        1,
+        "the actor is listed with its last-seen time"
+    );
     assert_eq!((view.actors[0].actor_id, view.actors[0].episodes), (0, 1));
 }
 
@@ -218,7 +311,10 @@ async fn unreported_leases_expire_and_are_counted() {
     }
     assert_eq!(view.expired_leases, 1);
     assert_eq!(view.open_leases, 0);
-    let status = client.report(report_for(&lease, true, 1.0)).await.unwrap_err();
+    let status = client
+        .report(report_for(&lease, true, 1.0))
+        .await
+        .unwrap_err();
     assert_eq!(status.code(), tonic::Code::FailedPrecondition);
     assert!(status.message().contains("expired"), "{}", status.message());
     assert_eq!(curriculum_part(&state_view(&mut client).await), before);
@@ -231,11 +327,19 @@ fn startup_errors_are_one_clear_line() {
     let missing = dir.path().join("nope.h5");
     let _guard = hdf5_fork_guard();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
-        .args(["--demos", missing.to_str().unwrap(), "--config", config.to_str().unwrap()])
+        .args([
+            "--demos",
+            missing.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
-    let line = stderr.lines().find(|l| l.starts_with("error:")).expect("an error line");
+    let line = stderr
+        .lines()
+        .find(|l| l.starts_with("error:"))
+        .expect("an error line");
     assert!(line.contains("nope.h5"), "{line}");
 }

@@ -18,7 +18,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         cfg.schedules = schedules
             .split(',')
             .map(|s| {
-                let (g, f) = s.split_once('/').ok_or("RFCL_BENCH_SCHEDULES: expected G/F,...")?;
+                let (g, f) = s
+                    .split_once('/')
+                    .ok_or("RFCL_BENCH_SCHEDULES: expected G/F,...")?;
                 Ok::<_, Box<dyn std::error::Error>>((g.parse()?, f.parse()?))
             })
             .collect::<Result<_, _>>()?;

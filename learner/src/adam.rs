@@ -62,7 +62,11 @@ impl Adam {
         let eps = self.eps * bias2_sqrt;
         tch::no_grad(|| {
             for (i, mut grad) in grads.into_iter().enumerate() {
-                let (m, v, denom) = (&mut self.exp_avg[i], &mut self.exp_avg_sq[i], &mut self.scratch[i]);
+                let (m, v, denom) = (
+                    &mut self.exp_avg[i],
+                    &mut self.exp_avg_sq[i],
+                    &mut self.scratch[i],
+                );
                 let _ = m.lerp_(&grad, 1.0 - self.beta1);
                 let _ = grad.square_();
                 let _ = v.lerp_(&grad, 1.0 - self.beta2);
@@ -85,7 +89,10 @@ impl Adam {
         let mut state = vec![("step".to_string(), Tensor::from(self.step))];
         for (i, (name, _)) in self.params.iter().enumerate() {
             state.push((format!("exp_avg.{name}"), self.exp_avg[i].shallow_clone()));
-            state.push((format!("exp_avg_sq.{name}"), self.exp_avg_sq[i].shallow_clone()));
+            state.push((
+                format!("exp_avg_sq.{name}"),
+                self.exp_avg_sq[i].shallow_clone(),
+            ));
         }
         state
     }
@@ -97,7 +104,9 @@ impl Adam {
                 .iter()
                 .find(|(n, _)| n == name)
                 .map(|(_, t)| t)
-                .ok_or_else(|| tch::TchError::TensorNameNotFound(name.to_string(), "adam state".into()))
+                .ok_or_else(|| {
+                    tch::TchError::TensorNameNotFound(name.to_string(), "adam state".into())
+                })
         };
         self.step = find("step")?.int64_value(&[]);
         tch::no_grad(|| -> Result<(), tch::TchError> {

@@ -144,15 +144,23 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             batch_seconds_per_iteration: batch_time.as_secs_f64() / iterations as f64,
         });
     }
-    Ok(BenchReport { config: cfg.clone(), device: format!(
+    Ok(BenchReport {
+        config: cfg.clone(),
+        device: format!(
             "cpu, {} threads, allocator tuned: {}",
             runtime.threads, runtime.allocator_tuned
-        ), results })
+        ),
+        results,
+    })
 }
 
 /// Uniform random transitions in [-1, 1] (the maths do not care about the values).
 fn random_batch(rng: &mut ChaCha8Rng, rows: usize, obs_dim: usize, action_dim: usize) -> HostBatch {
-    let mut fill = |n: usize| (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<f32>>();
+    let mut fill = |n: usize| {
+        (0..n)
+            .map(|_| rng.random_range(-1.0f32..1.0))
+            .collect::<Vec<f32>>()
+    };
     HostBatch {
         obs_dim,
         action_dim,
@@ -193,10 +201,86 @@ impl Flops {
         let flop = |macs: f64| 2.0 * b * macs;
         // Target: actor at s′, k target members; online critic forward + weight grads of every
         // layer + input grads of every layer but the first.
-        let critic_update = flop(actor_fwd + k * critic_fwd + e * (3.0 * critic_fwd - critic_first));
+        let critic_update =
+            flop(actor_fwd + k * critic_fwd + e * (3.0 * critic_fwd - critic_first));
         // Actor forward, critic forward, critic input grads of every layer (down to the action),
         // actor weight grads of every layer + input grads of every layer but the first.
         let actor_update = flop(actor_fwd + e * 2.0 * critic_fwd + 2.0 * actor_fwd - actor_first);
-        Self { critic_update, actor_update }
+        Self {
+            critic_update,
+            actor_update,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flops_of_the_rfcl_update_match_design_stack() {
+        let cfg = BenchConfig::default();
+        let net = NetworkConfig::default();
+        let flops = Flops::new(&cfg, &net);
+        // design/STACK.md: "about 4.07 GFLOP" for one critic + one actor update.
+        assert_eq!(flops.critic_update + flops.actor_update, 4_065_067_008.0);
+    }
+
+    #[test]
+    fn flops_hand_computed_case() {
+        // obs 2, action 1, one hidden layer of 3, 2 critics, min over 1, batch 1:
+        // critic 3→3→1 = 12 MACs (first layer 9); actor 2→3 + heads 3→2·1 = 12 MACs (first 6).
+        let cfg = BenchConfig {
+            obs_dim: 2,
+            action_dim: 1,
+            batch_size: 1,
+            critic_ensemble: 2,
+            num_min_qs: 1,
+            ..BenchConfig::default()
+        };
+        let net = NetworkConfig {
+            actor_features: vec![3],
+            critic_features: vec![3],
+            ..NetworkConfig::default()
+        };
+        let flops = Flops::new(&cfg, &net);
+        assert_eq!(
+            flops.critic_update,
+            2.0 * (12.0 + 12.0 + 2.0 * (3.0 * 12.0 - 9.0))
+        );
+        assert_eq!(
+            flops.actor_update,
+            2.0 * (12.0 + 2.0 * 2.0 * 12.0 + 2.0 * 12.0 - 6.0)
+        );
+    }
+
+    #[test]
+    fn run_reports_every_schedule() {
+        let cfg = BenchConfig {
+            obs_dim: 3,
+            action_dim: 2,
+            batch_size: 8,
+            hidden: vec![16],
+            critic_ensemble: 3,
+            target_pool: 3,
+            schedules: vec![(4, 2), (2, 1)],
+            threads: 1,
+            min_time: Duration::from_millis(20),
+            ..BenchConfig::default()
+        };
+        let report = run(&cfg).unwrap();
+        let names: Vec<&str> = report.results.iter().map(|r| r.schedule.as_str()).collect();
+        assert_eq!(names, ["G4/F2", "G2/F1"]);
+        for r in &report.results {
+            assert!(r.iterations >= 1 && r.seconds >= 0.02);
+            let per_update = r.seconds / (r.iterations as f64 * f64::from(r.grad_updates_per_step));
+            assert!((r.updates_per_s * per_update - 1.0).abs() < 1e-9);
+            assert_eq!(
+                r.actor_updates_per_s * f64::from(r.actor_update_freq),
+                r.critic_updates_per_s
+            );
+        }
+        let json = serde_json::to_value(&report).unwrap();
+        assert!(json["results"][0]["flop_per_update"].as_f64().unwrap() > 0.0);
     }
 }

@@ -7,7 +7,11 @@ use std::process::ExitCode;
 use clap::Parser;
 
 #[derive(Parser)]
-#[command(name = "learner", version, about = "RFCL learner: ensemble SAC on libtorch, replay, ingest, policy publication")]
+#[command(
+    name = "learner",
+    version,
+    about = "RFCL learner: ensemble SAC on libtorch, replay, ingest, policy publication"
+)]
 struct Args {
     /// gRPC port for actors (0 = a free one, printed on stdout).
     #[arg(long, default_value_t = 0)]
@@ -28,6 +32,9 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    eprintln!("error: the learner service is not built yet (issue 5); asked to listen on port {}", args.port);
+    eprintln!(
+        "error: the learner service is not built yet (issue 5); asked to listen on port {}",
+        args.port
+    );
     ExitCode::FAILURE
 }

@@ -25,15 +25,24 @@ pub fn standard_normal(
     kind: Kind,
     device: Device,
 ) -> Tensor {
-    let values: Vec<f64> = (0..rows * cols).map(|_| rng.sample(StandardNormal)).collect();
-    Tensor::from_slice(&values).view([rows, cols]).to_kind(kind).to_device(device)
+    let values: Vec<f64> = (0..rows * cols)
+        .map(|_| rng.sample(StandardNormal))
+        .collect();
+    Tensor::from_slice(&values)
+        .view([rows, cols])
+        .to_kind(kind)
+        .to_device(device)
 }
 
 /// Orthogonal kernel init (spec 5.1 "orthogonal kernel, gain √2" / heads "gain 1.0"), as Flax's
 /// `orthogonal`: a `[fan_in, fan_out]` matrix with orthonormal columns (fan_in ≥ fan_out) or
 /// orthonormal rows (fan_in < fan_out), times `gain`. Computed in f64 on the CPU.
 pub fn orthogonal(rng: &mut ChaCha8Rng, fan_in: i64, fan_out: i64, gain: f64) -> Tensor {
-    let (rows, cols) = if fan_in < fan_out { (fan_out, fan_in) } else { (fan_in, fan_out) };
+    let (rows, cols) = if fan_in < fan_out {
+        (fan_out, fan_in)
+    } else {
+        (fan_in, fan_out)
+    };
     let a = standard_normal(rng, rows, cols, Kind::Double, Device::Cpu);
     let (q, r) = Tensor::linalg_qr(&a, "reduced");
     // Q · sign(diag R) makes the factorisation unique, hence Q Haar-distributed.
@@ -85,7 +94,10 @@ impl Dense {
         let fan_out = w.size()[1];
         Self {
             w: (path / name).var_copy("kernel", w),
-            b: (path / name).var_copy("bias", &Tensor::zeros([fan_out], (Kind::Double, Device::Cpu))),
+            b: (path / name).var_copy(
+                "bias",
+                &Tensor::zeros([fan_out], (Kind::Double, Device::Cpu)),
+            ),
         }
     }
 
@@ -182,7 +194,10 @@ impl Actor {
         let (mean, log_std) = self.gaussian(obs);
         let u = &mean + log_std.exp() * noise;
         let log_prob = tanh_gaussian_log_prob(&u, &mean, &log_std);
-        PolicySample { action: u.tanh(), log_prob }
+        PolicySample {
+            action: u.tanh(),
+            log_prob,
+        }
     }
 
     /// The deterministic (evaluation) action tanh(μ) (spec 5.1, 5.7).
@@ -236,17 +251,25 @@ impl CriticEnsemble {
         let widths: Vec<i64> = net.critic_features.iter().map(|&w| i64::from(w)).collect();
         let gain = 2f64.sqrt();
         let first = widths[0];
-        let per_member: Vec<Tensor> =
-            (0..members).map(|_| orthogonal(rng, input_dim, first, gain)).collect();
+        let per_member: Vec<Tensor> = (0..members)
+            .map(|_| orthogonal(rng, input_dim, first, gain))
+            .collect();
         let input = Dense::new(path, "input", &Tensor::cat(&per_member, 1));
 
         let mut hidden = Vec::new();
         for (i, pair) in widths.windows(2).enumerate() {
-            let per_member: Vec<Tensor> =
-                (0..members).map(|_| orthogonal(rng, pair[0], pair[1], gain)).collect();
-            hidden.push(StackedDense::new(path, &format!("hidden{}", i + 1), &Tensor::stack(&per_member, 0)));
+            let per_member: Vec<Tensor> = (0..members)
+                .map(|_| orthogonal(rng, pair[0], pair[1], gain))
+                .collect();
+            hidden.push(StackedDense::new(
+                path,
+                &format!("hidden{}", i + 1),
+                &Tensor::stack(&per_member, 0),
+            ));
         }
-        let last = *widths.last().expect("critic_features is non-empty (validated)");
+        let last = *widths
+            .last()
+            .expect("critic_features is non-empty (validated)");
         let per_member: Vec<Tensor> = (0..members).map(|_| lecun_normal(rng, last, 1)).collect();
         let output = StackedDense::new(path, "output", &Tensor::stack(&per_member, 0));
 
@@ -268,7 +291,15 @@ impl CriticEnsemble {
         } else {
             Vec::new()
         };
-        Self { members, input, hidden, norms, output, layer_norm_eps: net.layer_norm_eps, precision }
+        Self {
+            members,
+            input,
+            hidden,
+            norms,
+            output,
+            layer_norm_eps: net.layer_norm_eps,
+            precision,
+        }
     }
 
     pub fn members(&self) -> i64 {
@@ -295,8 +326,13 @@ impl CriticEnsemble {
         match self.norms.get(i) {
             Some(norm) => {
                 let width = h.size()[2];
-                let normed =
-                    h.layer_norm([width], None::<Tensor>, None::<Tensor>, self.layer_norm_eps, false);
+                let normed = h.layer_norm(
+                    [width],
+                    None::<Tensor>,
+                    None::<Tensor>,
+                    self.layer_norm_eps,
+                    false,
+                );
                 norm.bias.addcmul(&normed, &norm.scale).relu()
             }
             None => h.relu(),
@@ -312,19 +348,44 @@ impl CriticEnsemble {
         let in_dim = self.input.w.size()[0];
         let pick = |t: &Tensor| t.detach().index_select(0, &index);
         let input = Dense {
-            w: self.input.w.detach().view([in_dim, self.members, -1]).index_select(1, &index).view([in_dim, -1]),
-            b: self.input.b.detach().view([self.members, -1]).index_select(0, &index).view([-1]),
+            w: self
+                .input
+                .w
+                .detach()
+                .view([in_dim, self.members, -1])
+                .index_select(1, &index)
+                .view([in_dim, -1]),
+            b: self
+                .input
+                .b
+                .detach()
+                .view([self.members, -1])
+                .index_select(0, &index)
+                .view([-1]),
         };
         CriticEnsemble {
             members: k,
             input,
-            hidden: self.hidden.iter().map(|l| StackedDense { w: pick(&l.w), b: pick(&l.b) }).collect(),
+            hidden: self
+                .hidden
+                .iter()
+                .map(|l| StackedDense {
+                    w: pick(&l.w),
+                    b: pick(&l.b),
+                })
+                .collect(),
             norms: self
                 .norms
                 .iter()
-                .map(|n| StackedNorm { scale: pick(&n.scale), bias: pick(&n.bias) })
+                .map(|n| StackedNorm {
+                    scale: pick(&n.scale),
+                    bias: pick(&n.bias),
+                })
                 .collect(),
-            output: StackedDense { w: pick(&self.output.w), b: pick(&self.output.b) },
+            output: StackedDense {
+                w: pick(&self.output.w),
+                b: pick(&self.output.b),
+            },
             layer_norm_eps: self.layer_norm_eps,
             precision: self.precision,
         }

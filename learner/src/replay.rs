@@ -33,7 +33,12 @@ pub struct ReplayBuffer {
 
 impl ReplayBuffer {
     /// Allocates the whole ring now (zeroed; pages are committed as they are first written).
-    pub fn new(name: &'static str, capacity: usize, obs_dim: usize, action_dim: usize) -> Result<Self> {
+    pub fn new(
+        name: &'static str,
+        capacity: usize,
+        obs_dim: usize,
+        action_dim: usize,
+    ) -> Result<Self> {
         if capacity == 0 || obs_dim == 0 || action_dim == 0 {
             return Err(LearnerError::Config(format!(
                 "{name} replay buffer: capacity {capacity}, obs_dim {obs_dim} and action_dim {action_dim} must be positive"
@@ -61,7 +66,11 @@ impl ReplayBuffer {
 
     /// Bytes allocated for the storage: capacity × [`record_bytes`](Self::record_bytes).
     pub fn bytes(&self) -> usize {
-        4 * (self.obs.len() + self.action.len() + self.reward.len() + self.mask.len() + self.next_obs.len())
+        4 * (self.obs.len()
+            + self.action.len()
+            + self.reward.len()
+            + self.mask.len()
+            + self.next_obs.len())
     }
 
     pub fn name(&self) -> &'static str {
@@ -84,7 +93,14 @@ impl ReplayBuffer {
     }
 
     /// Appends one transition, overwriting the oldest once full.
-    pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, mask: f32, next_obs: &[f32]) -> Result<()> {
+    pub fn push(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        reward: f32,
+        mask: f32,
+        next_obs: &[f32],
+    ) -> Result<()> {
         self.check_dims(obs.len(), action.len(), next_obs.len())?;
         let (d, a, i) = (self.obs_dim, self.action_dim, self.cursor);
         self.obs[i * d..(i + 1) * d].copy_from_slice(obs);
@@ -128,7 +144,13 @@ impl ReplayBuffer {
 
     /// Empties the ring: cursor 0, storage zeroed (spec 4.2).
     pub fn clear(&mut self) {
-        for field in [&mut self.obs, &mut self.action, &mut self.reward, &mut self.mask, &mut self.next_obs] {
+        for field in [
+            &mut self.obs,
+            &mut self.action,
+            &mut self.reward,
+            &mut self.mask,
+            &mut self.next_obs,
+        ] {
             field.fill(0.0);
         }
         self.len = 0;
@@ -139,10 +161,12 @@ impl ReplayBuffer {
     fn copy_row(&self, i: usize, out: &mut HostBatch) {
         let (d, a) = (self.obs_dim, self.action_dim);
         out.obs.extend_from_slice(&self.obs[i * d..(i + 1) * d]);
-        out.action.extend_from_slice(&self.action[i * a..(i + 1) * a]);
+        out.action
+            .extend_from_slice(&self.action[i * a..(i + 1) * a]);
         out.reward.push(self.reward[i]);
         out.mask.push(self.mask[i]);
-        out.next_obs.extend_from_slice(&self.next_obs[i * d..(i + 1) * d]);
+        out.next_obs
+            .extend_from_slice(&self.next_obs[i * d..(i + 1) * d]);
     }
 
     /// A uniformly drawn stored transition's slot (with replacement).
@@ -191,7 +215,11 @@ pub struct Replay {
 
 impl Replay {
     pub fn new(online: ReplayBuffer, offline: Option<ReplayBuffer>, seed: u64) -> Self {
-        Self { online, offline, rng: ChaCha8Rng::seed_from_u64(seed) }
+        Self {
+            online,
+            offline,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+        }
     }
 
     /// Spec 5.2 steps 1-2 (and 12.7): `minibatches` × `batch_size` rows for one training
@@ -207,20 +235,22 @@ impl Replay {
         match &self.offline {
             None => {
                 for _ in 0..rows {
-                    self.online.copy_row(self.online.draw(&mut self.rng), &mut out);
+                    self.online
+                        .copy_row(self.online.draw(&mut self.rng), &mut out);
                 }
             }
             Some(offline) => {
                 if offline.is_empty() {
                     return Err(LearnerError::EmptyBuffer("offline"));
                 }
-                if batch_size % 2 != 0 {
+                if !batch_size.is_multiple_of(2) {
                     return Err(LearnerError::Config(format!(
                         "sac.batch_size ({batch_size}) must be even to split minibatches 50/50 online/offline"
                     )));
                 }
                 for _ in 0..rows / 2 {
-                    self.online.copy_row(self.online.draw(&mut self.rng), &mut out);
+                    self.online
+                        .copy_row(self.online.draw(&mut self.rng), &mut out);
                     offline.copy_row(offline.draw(&mut self.rng), &mut out);
                 }
             }
@@ -237,10 +267,16 @@ impl Replay {
         let capacity = self.online.capacity;
         let (d, a) = (self.online.obs_dim, self.online.action_dim);
         self.offline = match (as_offline, as_online) {
-            (true, true) => Some(ReplayBuffer { name: "offline", ..self.online.clone() }),
+            (true, true) => Some(ReplayBuffer {
+                name: "offline",
+                ..self.online.clone()
+            }),
             (true, false) => {
                 let fresh = ReplayBuffer::new("online", capacity, d, a)?;
-                Some(ReplayBuffer { name: "offline", ..std::mem::replace(&mut self.online, fresh) })
+                Some(ReplayBuffer {
+                    name: "offline",
+                    ..std::mem::replace(&mut self.online, fresh)
+                })
             }
             (false, _) => None,
         };
@@ -266,7 +302,11 @@ impl Replay {
 /// where dimension d ever reaches exactly ±1 or is identically 0. The env is wrapped to [−s, s]
 /// (agent action a ↦ env action a / s) and demo actions are stored as a · s, in agent units.
 /// Errors unless every demo action is in [−1, 1].
-pub fn data_action_scale(demos: &[Demo], action_dim: usize, data_action_scale: f64) -> Result<Vec<f32>> {
+pub fn data_action_scale(
+    demos: &[Demo],
+    action_dim: usize,
+    data_action_scale: f64,
+) -> Result<Vec<f32>> {
     let mut magnitude = vec![0.0f32; action_dim];
     let mut hits_bound = vec![false; action_dim];
     for demo in demos {
@@ -296,7 +336,9 @@ pub fn data_action_scale(demos: &[Demo], action_dim: usize, data_action_scale: f
 /// Spec 6.2: the offline buffer of all steps of `demos` (capacity = their total step count),
 /// actions multiplied by `action_scale` when given.
 pub fn offline_from_demos(demos: &[Demo], action_scale: Option<&[f32]>) -> Result<ReplayBuffer> {
-    let first = demos.first().ok_or_else(|| LearnerError::Config("no demos to build the offline buffer".into()))?;
+    let first = demos
+        .first()
+        .ok_or_else(|| LearnerError::Config("no demos to build the offline buffer".into()))?;
     let steps: usize = demos.iter().map(Demo::len).sum();
     let mut buffer = ReplayBuffer::new("offline", steps.max(1), first.obs_dim, first.action_dim)?;
     for demo in demos {

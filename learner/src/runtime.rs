@@ -25,7 +25,10 @@ pub struct CpuRuntime {
 /// blocks (see the module docs).
 pub fn configure_cpu(threads: i32) -> CpuRuntime {
     tch::set_num_threads(threads);
-    CpuRuntime { threads: tch::get_num_threads(), allocator_tuned: tune_glibc_malloc() }
+    CpuRuntime {
+        threads: tch::get_num_threads(),
+        allocator_tuned: tune_glibc_malloc(),
+    }
 }
 
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
@@ -43,4 +46,17 @@ fn tune_glibc_malloc() -> bool {
 #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
 fn tune_glibc_malloc() -> bool {
     false
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn configure_cpu_sets_threads_and_tunes_glibc() {
+        let applied = super::configure_cpu(1);
+        assert_eq!(applied.threads, 1);
+        assert_eq!(
+            applied.allocator_tuned,
+            cfg!(all(target_os = "linux", target_env = "gnu"))
+        );
+    }
 }

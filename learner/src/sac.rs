@@ -118,7 +118,9 @@ impl Sac {
             rfcl_core::config::Device::Cpu => Device::Cpu,
             rfcl_core::config::Device::Cuda if tch::Cuda::is_available() => Device::Cuda(0),
             rfcl_core::config::Device::Cuda => {
-                return Err(LearnerError::Config("sac.device is cuda but libtorch sees no CUDA device".into()))
+                return Err(LearnerError::Config(
+                    "sac.device is cuda but libtorch sees no CUDA device".into(),
+                ))
             }
         };
         let (obs_dim, action_dim) = (obs_dim as i64, action_dim as i64);
@@ -131,12 +133,32 @@ impl Sac {
         let (actor_vs, critic_vs, mut target_vs, temp_vs) = (store(), store(), store(), store());
         let members = i64::from(cfg.critic_ensemble);
         let precision = cfg.matmul_precision;
-        let actor = Actor::new(&actor_vs.root(), &mut rng, obs_dim, action_dim, net, precision);
+        let actor = Actor::new(
+            &actor_vs.root(),
+            &mut rng,
+            obs_dim,
+            action_dim,
+            net,
+            precision,
+        );
         let critic_in = obs_dim + action_dim;
-        let critic = CriticEnsemble::new(&critic_vs.root(), &mut rng, critic_in, members, net, precision);
+        let critic = CriticEnsemble::new(
+            &critic_vs.root(),
+            &mut rng,
+            critic_in,
+            members,
+            net,
+            precision,
+        );
         // The target's own init is overwritten at once: it starts as an exact copy (spec 5.1).
-        let target_critic =
-            CriticEnsemble::new(&target_vs.root(), &mut rng.clone(), critic_in, members, net, precision);
+        let target_critic = CriticEnsemble::new(
+            &target_vs.root(),
+            &mut rng.clone(),
+            critic_in,
+            members,
+            net,
+            precision,
+        );
         target_vs.copy(&critic_vs)?;
         target_vs.freeze();
         let log_alpha = temp_vs.root().var_copy(
@@ -151,7 +173,9 @@ impl Sac {
             .map(|(name, target)| (target, online[&name].shallow_clone()))
             .collect();
 
-        let adam = |vs: &nn::VarStore, lr: f64| Adam::new(vs, lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps);
+        let adam = |vs: &nn::VarStore, lr: f64| {
+            Adam::new(vs, lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps)
+        };
         Ok(Self {
             obs_dim,
             action_dim,
@@ -192,7 +216,8 @@ impl Sac {
         }
         let zero = || Tensor::zeros([], (self.kind, self.device));
         let (mut critic_loss, mut q) = (zero(), zero());
-        let (mut actor_loss, mut entropy, mut temp, mut temp_loss) = (zero(), zero(), zero(), zero());
+        let (mut actor_loss, mut entropy, mut temp, mut temp_loss) =
+            (zero(), zero(), zero(), zero());
         for round in 0..g / f {
             let mut last = None;
             for k in 0..f {
@@ -234,19 +259,35 @@ impl Sac {
         let (loss, q) = self.critic_loss(minibatch, &members, &noise);
         self.critic_opt.minimize(&loss);
         polyak_update(&self.polyak_pairs, self.cfg.tau);
-        CriticStep { loss: loss.detach(), q: q.mean(None).detach() }
+        CriticStep {
+            loss: loss.detach(),
+            q: q.mean(None).detach(),
+        }
     }
 
     /// The critic loss for given target members and policy noise at s′: (loss, Q `[E, B]`).
-    pub fn critic_loss(&self, minibatch: &Batch, members: &[i64], noise: &Tensor) -> (Tensor, Tensor) {
+    pub fn critic_loss(
+        &self,
+        minibatch: &Batch,
+        members: &[i64],
+        noise: &Tensor,
+    ) -> (Tensor, Tensor) {
         let target = tch::no_grad(|| {
             let next = self.actor.sample(&minibatch.next_obs, noise);
-            let next_q = self.target_critic.select(members).forward(&minibatch.next_obs, &next.action);
+            let next_q = self
+                .target_critic
+                .select(members)
+                .forward(&minibatch.next_obs, &next.action);
             let mut next_v = next_q.amin(0, false);
             if self.cfg.backup_entropy {
                 next_v -= self.alpha() * next.log_prob;
             }
-            bellman_target(&minibatch.reward, &minibatch.mask, &next_v, self.cfg.discount)
+            bellman_target(
+                &minibatch.reward,
+                &minibatch.mask,
+                &next_v,
+                self.cfg.discount,
+            )
         });
         let q = self.critic.forward(&minibatch.obs, &minibatch.action);
         (mean_squared_td_error(&q, &target), q)
@@ -257,7 +298,10 @@ impl Sac {
         let noise = self.policy_noise(obs.size()[0]);
         let (loss, log_prob) = self.actor_loss(obs, &noise);
         self.actor_opt.minimize(&loss);
-        ActorStep { loss: loss.detach(), entropy: -log_prob.mean(None).detach() }
+        ActorStep {
+            loss: loss.detach(),
+            entropy: -log_prob.mean(None).detach(),
+        }
     }
 
     /// The actor loss for given policy noise: (loss, log π `[B]`).
@@ -274,7 +318,10 @@ impl Sac {
         if self.cfg.learnable_temp {
             self.temp_opt.minimize(&loss);
         }
-        TemperatureStep { temp, loss: loss.detach() }
+        TemperatureStep {
+            temp,
+            loss: loss.detach(),
+        }
     }
 
     /// α = exp(log α), detached: a constant wherever it scales another loss.
@@ -320,10 +367,18 @@ impl Sac {
         &self.temp_vs
     }
     pub fn optimizers(&self) -> [(&'static str, &Adam); 3] {
-        [("actor", &self.actor_opt), ("critic", &self.critic_opt), ("temperature", &self.temp_opt)]
+        [
+            ("actor", &self.actor_opt),
+            ("critic", &self.critic_opt),
+            ("temperature", &self.temp_opt),
+        ]
     }
     pub fn optimizers_mut(&mut self) -> [(&'static str, &mut Adam); 3] {
-        [("actor", &mut self.actor_opt), ("critic", &mut self.critic_opt), ("temperature", &mut self.temp_opt)]
+        [
+            ("actor", &mut self.actor_opt),
+            ("critic", &mut self.critic_opt),
+            ("temperature", &mut self.temp_opt),
+        ]
     }
     /// The RNG that draws policy noise and target members (checkpoint it to resume exactly).
     pub fn rng(&self) -> &ChaCha8Rng {
@@ -354,8 +409,15 @@ impl Sac {
 
 /// Spec 5.3 "Critic" step 2: `num_min_qs` distinct members drawn uniformly from
 /// {0, …, target_pool − 1}; one draw per critic update, shared by the whole minibatch.
-pub fn draw_target_members(rng: &mut ChaCha8Rng, target_pool: usize, num_min_qs: usize) -> Vec<i64> {
-    rand::seq::index::sample(rng, target_pool, num_min_qs).into_iter().map(|i| i as i64).collect()
+pub fn draw_target_members(
+    rng: &mut ChaCha8Rng,
+    target_pool: usize,
+    num_min_qs: usize,
+) -> Vec<i64> {
+    rand::seq::index::sample(rng, target_pool, num_min_qs)
+        .into_iter()
+        .map(|i| i as i64)
+        .collect()
 }
 
 /// Spec 5.3 "Critic" step 3: y = r + γ·mask·V(s′), with V(s′) = min_{k∈I} Q̄_k(s′, a′)
@@ -395,7 +457,9 @@ pub fn polyak_update(pairs: &[(Tensor, Tensor)], tau: f64) {
 fn validate(obs_dim: usize, action_dim: usize, cfg: &SacConfig, net: &NetworkConfig) -> Result<()> {
     let fail = |msg: String| Err(LearnerError::Config(msg));
     if obs_dim == 0 || action_dim == 0 {
-        return fail(format!("obs_dim {obs_dim} and action_dim {action_dim} must be positive"));
+        return fail(format!(
+            "obs_dim {obs_dim} and action_dim {action_dim} must be positive"
+        ));
     }
     if cfg.critic_ensemble == 0 {
         return fail("sac.critic_ensemble must be at least 1".into());
@@ -413,24 +477,35 @@ fn validate(obs_dim: usize, action_dim: usize, cfg: &SacConfig, net: &NetworkCon
         ));
     }
     if cfg.batch_size == 0 || cfg.grad_updates_per_step == 0 || cfg.actor_update_freq == 0 {
-        return fail("sac.batch_size, sac.grad_updates_per_step and sac.actor_update_freq must be positive".into());
+        return fail(
+            "sac.batch_size, sac.grad_updates_per_step and sac.actor_update_freq must be positive"
+                .into(),
+        );
     }
-    if cfg.grad_updates_per_step % cfg.actor_update_freq != 0 {
+    if !cfg
+        .grad_updates_per_step
+        .is_multiple_of(cfg.actor_update_freq)
+    {
         return fail(format!(
             "sac.grad_updates_per_step ({}) must be a multiple of sac.actor_update_freq ({}) (spec 5.2)",
             cfg.grad_updates_per_step, cfg.actor_update_freq
         ));
     }
-    if !(cfg.initial_temperature > 0.0) {
-        return fail(format!("sac.initial_temperature ({}) must be positive", cfg.initial_temperature));
+    if cfg.initial_temperature.is_nan() || cfg.initial_temperature <= 0.0 {
+        return fail(format!(
+            "sac.initial_temperature ({}) must be positive",
+            cfg.initial_temperature
+        ));
     }
     if net.actor_features.is_empty() || net.critic_features.is_empty() {
-        return fail("network.actor_features and network.critic_features need at least one layer".into());
+        return fail(
+            "network.actor_features and network.critic_features need at least one layer".into(),
+        );
     }
     if net.actor_features.contains(&0) || net.critic_features.contains(&0) {
         return fail("network layer widths must be positive".into());
     }
-    if !(net.log_std_min < net.log_std_max) {
+    if net.log_std_min.is_nan() || net.log_std_max.is_nan() || net.log_std_min >= net.log_std_max {
         return fail(format!(
             "network.log_std_min ({}) must be below network.log_std_max ({})",
             net.log_std_min, net.log_std_max

@@ -20,7 +20,11 @@ struct Reach {
 
 impl Reach {
     fn reset(rng: &mut ChaCha8Rng) -> Self {
-        Self { x: rng.random_range(-1.0..1.0), goal: rng.random_range(-1.0..1.0), t: 0 }
+        Self {
+            x: rng.random_range(-1.0..1.0),
+            goal: rng.random_range(-1.0..1.0),
+            t: 0,
+        }
     }
     fn obs(&self) -> [f32; 2] {
         [self.x, self.goal]
@@ -70,7 +74,11 @@ fn sac_learns_sparse_reward_reach() {
         temp_lr: 1e-3,
         ..SacConfig::default()
     };
-    let net = NetworkConfig { actor_features: vec![64, 64], critic_features: vec![64, 64], ..NetworkConfig::default() };
+    let net = NetworkConfig {
+        actor_features: vec![64, 64],
+        critic_features: vec![64, 64],
+        ..NetworkConfig::default()
+    };
     let mut sac = Sac::new(2, 1, &cfg, &net, 0).unwrap();
     let mut replay = Replay::new(ReplayBuffer::new("online", 20_000, 2, 1).unwrap(), None, 1);
     let mut rng = ChaCha8Rng::seed_from_u64(2);
@@ -82,16 +90,24 @@ fn sac_learns_sparse_reward_reach() {
         let action = if step < seed_steps {
             rng.random_range(-1.0f32..1.0)
         } else {
-            sac.act(&Tensor::from_slice(&obs).unsqueeze(0)).double_value(&[0, 0]) as f32
+            sac.act(&Tensor::from_slice(&obs).unsqueeze(0))
+                .double_value(&[0, 0]) as f32
         };
         let (reward, done) = env.step(action);
-        replay.online.push(&obs, &[action], reward, 1.0, &env.obs()).unwrap();
+        replay
+            .online
+            .push(&obs, &[action], reward, 1.0, &env.obs())
+            .unwrap();
         if done {
             env = Reach::reset(&mut rng);
         }
         if step >= seed_steps && step % steps_per_iteration == 0 {
-            let batch = replay.sample(cfg.grad_updates_per_step as usize, cfg.batch_size as usize).unwrap();
-            let metrics = sac.train_iteration(&batch.to_tensors(Kind::Float, sac.device())).unwrap();
+            let batch = replay
+                .sample(cfg.grad_updates_per_step as usize, cfg.batch_size as usize)
+                .unwrap();
+            let metrics = sac
+                .train_iteration(&batch.to_tensors(Kind::Float, sac.device()))
+                .unwrap();
             assert!(metrics.critic_loss.is_finite() && metrics.actor_loss.is_finite());
         }
     }

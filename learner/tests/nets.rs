@@ -12,7 +12,10 @@ use tch::{Kind, Tensor};
 
 fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 /// ‖M·Mᵀ − gain²·I‖∞ for an r×c row-major matrix (rows orthogonal).
@@ -29,7 +32,9 @@ fn row_gram_error(m: &[f64], r: usize, c: usize, gain: f64) -> f64 {
 }
 
 fn transpose(m: &[f64], r: usize, c: usize) -> Vec<f64> {
-    (0..c).flat_map(|j| (0..r).map(move |i| m[i * c + j])).collect()
+    (0..c)
+        .flat_map(|j| (0..r).map(move |i| m[i * c + j]))
+        .collect()
 }
 
 #[test]
@@ -58,14 +63,21 @@ fn lecun_normal_is_truncated_at_two_std_with_variance_one_over_fan_in() {
     let var = w.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / w.len() as f64;
     assert!(mean.abs() < 0.01 * (1.0 / fan_in as f64).sqrt() * 10.0);
     let expected = 1.0 / fan_in as f64;
-    assert!((var - expected).abs() < 0.03 * expected, "var {var} vs {expected}");
+    assert!(
+        (var - expected).abs() < 0.03 * expected,
+        "var {var} vs {expected}"
+    );
 }
 
 #[test]
 fn agent_init_follows_spec_5_1() {
     let (sac_cfg, _) = small_config();
     let net = NetworkConfig::default();
-    let cfg = SacConfig { critic_ensemble: 3, target_pool: 3, ..sac_cfg };
+    let cfg = SacConfig {
+        critic_ensemble: 3,
+        target_pool: 3,
+        ..sac_cfg
+    };
     let sac = Sac::with_kind(11, 3, &cfg, &net, 7, Kind::Double).unwrap();
     let actor = sac.actor_vars().variables();
     let critic = sac.critic_vars().variables();
@@ -89,7 +101,9 @@ fn agent_init_follows_spec_5_1() {
     // Critic: each member's first-layer block [14, 256] has orthonormal rows, members differ.
     let w = values(&critic["input.kernel"]);
     let block = |e: usize| -> Vec<f64> {
-        (0..14).flat_map(|i| w[i * 3 * 256 + e * 256..i * 3 * 256 + (e + 1) * 256].to_vec()).collect()
+        (0..14)
+            .flat_map(|i| w[i * 3 * 256 + e * 256..i * 3 * 256 + (e + 1) * 256].to_vec())
+            .collect()
     };
     for e in 0..3 {
         assert!(row_gram_error(&block(e), 14, 256, sqrt2) < 1e-9);
@@ -102,7 +116,9 @@ fn agent_init_follows_spec_5_1() {
     // LayerNorm scale 1, bias 0; output LeCun normal within ±2 std.
     assert!(values(&critic["norm2.scale"]).iter().all(|&x| x == 1.0));
     let bound = 2.0 * (1.0f64 / 256.0).sqrt() / 0.879_625_661_034_239_8;
-    assert!(values(&critic["output.kernel"]).iter().all(|x| x.abs() <= bound));
+    assert!(values(&critic["output.kernel"])
+        .iter()
+        .all(|x| x.abs() <= bound));
     // Target critic: an exact copy.
     let target = sac.target_critic_vars().variables();
     assert_eq!(target.len(), critic.len());
@@ -110,21 +126,35 @@ fn agent_init_follows_spec_5_1() {
         assert_eq!(values(t), values(&critic[name]), "{name}");
     }
     // Temperature: log α = log(initial_temperature).
-    assert_eq!(values(&sac.temperature_vars().variables()["log_alpha"]), vec![0.0]);
+    assert_eq!(
+        values(&sac.temperature_vars().variables()["log_alpha"]),
+        vec![0.0]
+    );
 }
 
 #[test]
 fn log_std_squash_spans_min_to_max() {
     let h = Tensor::from_slice(&[-1e3, 0.0, 1e3]);
-    assert_eq!(values(&squash_log_std(&h, -5.0, 2.0)), vec![-5.0, -1.5, 2.0]);
+    assert_eq!(
+        values(&squash_log_std(&h, -5.0, 2.0)),
+        vec![-5.0, -1.5, 2.0]
+    );
 }
 
 /// ∫₋₁¹ exp(log π(a)) da = 1 for the 1-D tanh-Gaussian (midpoint rule in a, u = atanh a).
 #[test]
 fn tanh_gaussian_density_integrates_to_one() {
-    for (mean, log_std) in [(0.0, 0.0), (0.7, -1.0), (-1.2, 0.5), (2.0, -2.0), (0.0, -4.0)] {
+    for (mean, log_std) in [
+        (0.0, 0.0),
+        (0.7, -1.0),
+        (-1.2, 0.5),
+        (2.0, -2.0),
+        (0.0, -4.0),
+    ] {
         let n = 400_000usize;
-        let a: Vec<f64> = (0..n).map(|i| -1.0 + (i as f64 + 0.5) * 2.0 / n as f64).collect();
+        let a: Vec<f64> = (0..n)
+            .map(|i| -1.0 + (i as f64 + 0.5) * 2.0 / n as f64)
+            .collect();
         let u = Tensor::from_slice(&a).atanh().unsqueeze(-1);
         let log_p = tanh_gaussian_log_prob(
             &u,
@@ -132,7 +162,10 @@ fn tanh_gaussian_density_integrates_to_one() {
             &Tensor::from_slice(&[log_std]).expand([n as i64, 1], false),
         );
         let integral: f64 = values(&log_p).iter().map(|l| l.exp()).sum::<f64>() * 2.0 / n as f64;
-        assert!((integral - 1.0).abs() < 2e-3, "μ {mean} log σ {log_std}: ∫ = {integral}");
+        assert!(
+            (integral - 1.0).abs() < 2e-3,
+            "μ {mean} log σ {log_std}: ∫ = {integral}"
+        );
     }
 }
 
@@ -150,9 +183,15 @@ fn tanh_gaussian_log_prob_matches_textbook_form_and_is_stable() {
     for (i, &ui) in u.iter().enumerate() {
         let sigma: f64 = f64::exp(log_std);
         let z = (ui - mean) / sigma;
-        let expected = -0.5 * z * z - log_std - 0.5 * (2.0 * std::f64::consts::PI).ln()
+        let expected = -0.5 * z * z
+            - log_std
+            - 0.5 * (2.0 * std::f64::consts::PI).ln()
             - (1.0 - ui.tanh().powi(2)).ln();
-        assert!((got[i] - expected).abs() < 1e-12, "u {ui}: {} vs {expected}", got[i]);
+        assert!(
+            (got[i] - expected).abs() < 1e-12,
+            "u {ui}: {} vs {expected}",
+            got[i]
+        );
     }
     // u = 30: 1 − tanh² u underflows to 0 in f32; the stable form does not.
     let far = tanh_gaussian_log_prob(
@@ -162,7 +201,10 @@ fn tanh_gaussian_log_prob_matches_textbook_form_and_is_stable() {
     );
     let v = values(&far)[0];
     let expected = -0.5 * (2.0 * std::f64::consts::PI).ln() + 2.0 * (30.0 - 2f64.ln());
-    assert!(v.is_finite() && (v - expected).abs() < 1e-3, "{v} vs {expected}");
+    assert!(
+        v.is_finite() && (v - expected).abs() < 1e-3,
+        "{v} vs {expected}"
+    );
 }
 
 #[test]
@@ -172,7 +214,9 @@ fn actor_matches_naive_computation_and_acts_deterministically_with_tanh_mean() {
     let naive = NaiveActor::from_vars(sac.actor_vars(), &net);
     let obs = pseudo_random(5 * 4, 1);
     let noise = pseudo_random(5 * 3, 2);
-    let sample = sac.actor().sample(&tensor(5, 4, &obs), &tensor(5, 3, &noise));
+    let sample = sac
+        .actor()
+        .sample(&tensor(5, 4, &obs), &tensor(5, 3, &noise));
     let (actions, log_probs) = (values(&sample.action), values(&sample.log_prob));
     let deterministic = values(&sac.act_deterministic(&tensor(5, 4, &obs)));
     for r in 0..5 {
@@ -197,17 +241,26 @@ fn critic_ensemble_matches_naive_per_member_loop() {
         let naive = naive_critics(sac.critic_vars(), &net, 4);
         let obs = pseudo_random(6 * 4, 3);
         let act = pseudo_random(6 * 3, 4);
-        let q = sac.critic().forward(&tensor(6, 4, &obs), &tensor(6, 3, &act));
+        let q = sac
+            .critic()
+            .forward(&tensor(6, 4, &obs), &tensor(6, 3, &act));
         assert_eq!(q.size(), vec![4, 6]);
         let q = values(&q);
         for (e, member) in naive.iter().enumerate() {
             for r in 0..6 {
                 let expected = member.q(&obs[r * 4..(r + 1) * 4], &act[r * 3..(r + 1) * 3]);
-                assert!((q[e * 6 + r] - expected).abs() < 1e-12, "member {e} row {r}");
+                assert!(
+                    (q[e * 6 + r] - expected).abs() < 1e-12,
+                    "member {e} row {r}"
+                );
             }
         }
         // A selected sub-ensemble computes exactly those members.
-        let picked = values(&sac.critic().select(&[3, 1]).forward(&tensor(6, 4, &obs), &tensor(6, 3, &act)));
+        let picked = values(
+            &sac.critic()
+                .select(&[3, 1])
+                .forward(&tensor(6, 4, &obs), &tensor(6, 3, &act)),
+        );
         assert_eq!(picked[..6], q[18..24]);
         assert_eq!(picked[6..], q[6..12]);
     }
@@ -219,9 +272,15 @@ fn bf16_matmuls_stay_close_to_fp32() {
     let obs = pseudo_random(6 * 4, 8);
     let act = pseudo_random(6 * 3, 9);
     let fp32 = Sac::new(4, 3, &cfg, &net, 21).unwrap();
-    let bf16_cfg = SacConfig { matmul_precision: MatmulPrecision::Bf16, ..cfg };
+    let bf16_cfg = SacConfig {
+        matmul_precision: MatmulPrecision::Bf16,
+        ..cfg
+    };
     let bf16 = Sac::new(4, 3, &bf16_cfg, &net, 21).unwrap();
-    let (o, a) = (tensor(6, 4, &obs).to_kind(Kind::Float), tensor(6, 3, &act).to_kind(Kind::Float));
+    let (o, a) = (
+        tensor(6, 4, &obs).to_kind(Kind::Float),
+        tensor(6, 3, &act).to_kind(Kind::Float),
+    );
     let q32 = values(&fp32.critic().forward(&o, &a));
     let q16 = values(&bf16.critic().forward(&o, &a));
     assert_ne!(q32, q16);

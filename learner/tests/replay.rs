@@ -12,7 +12,9 @@ fn tagged_buffer(name: &'static str, n: usize, capacity: usize, sign: f32) -> Re
     let mut buffer = ReplayBuffer::new(name, capacity, 3, 2).unwrap();
     for i in 0..n {
         let v = (i + 1) as f32;
-        buffer.push(&[v; 3], &[sign * v; 2], sign * v, 1.0, &[v + 0.5; 3]).unwrap();
+        buffer
+            .push(&[v; 3], &[sign * v; 2], sign * v, 1.0, &[v + 0.5; 3])
+            .unwrap();
     }
     buffer
 }
@@ -39,10 +41,20 @@ fn byte_size_is_capacity_times_record_bytes() {
     let buffer = ReplayBuffer::new("online", 1000, 42, 8).unwrap();
     assert_eq!(ReplayBuffer::record_bytes(42, 8), 4 * (42 + 42 + 8 + 1 + 1));
     assert_eq!(buffer.bytes(), 1000 * 376);
-    assert_eq!(buffer.to_string(), "online replay: 0/1000 transitions × 376 B = 0.4 MB");
-    let replay = Replay::new(buffer, Some(ReplayBuffer::new("offline", 10, 42, 8).unwrap()), 0);
+    assert_eq!(
+        buffer.to_string(),
+        "online replay: 0/1000 transitions × 376 B = 0.4 MB"
+    );
+    let replay = Replay::new(
+        buffer,
+        Some(ReplayBuffer::new("offline", 10, 42, 8).unwrap()),
+        0,
+    );
     assert_eq!(replay.bytes(), 1010 * 376);
-    assert!(matches!(ReplayBuffer::new("online", 0, 42, 8), Err(LearnerError::Config(_))));
+    assert!(matches!(
+        ReplayBuffer::new("online", 0, 42, 8),
+        Err(LearnerError::Config(_))
+    ));
 }
 
 #[test]
@@ -56,7 +68,12 @@ fn ring_overwrites_the_oldest_and_checks_dims() {
     seen.sort_by(f32::total_cmp);
     seen.dedup();
     assert_eq!(seen, vec![3.0, 4.0, 5.0, 6.0, 7.0]);
-    assert!(matches!(replay.online.push(&[0.0; 2], &[0.0; 2], 0.0, 1.0, &[0.0; 3]), Err(LearnerError::Shape(_))));
+    assert!(matches!(
+        replay
+            .online
+            .push(&[0.0; 2], &[0.0; 2], 0.0, 1.0, &[0.0; 3]),
+        Err(LearnerError::Shape(_))
+    ));
 }
 
 #[test]
@@ -65,7 +82,11 @@ fn sampling_is_uniform_with_replacement_and_seeded() {
     let mut a = Replay::new(tagged_buffer("online", n, n, 1.0), None, 42);
     let mut b = Replay::new(tagged_buffer("online", n, n, 1.0), None, 42);
     let mut c = Replay::new(tagged_buffer("online", n, n, 1.0), None, 43);
-    let (x, y, z) = (a.sample(40, 250).unwrap(), b.sample(40, 250).unwrap(), c.sample(40, 250).unwrap());
+    let (x, y, z) = (
+        a.sample(40, 250).unwrap(),
+        b.sample(40, 250).unwrap(),
+        c.sample(40, 250).unwrap(),
+    );
     assert_eq!(x, y);
     assert_ne!(x, z);
     let mut counts = vec![0usize; n];
@@ -73,7 +94,10 @@ fn sampling_is_uniform_with_replacement_and_seeded() {
         counts[*r as usize - 1] += 1;
     }
     // 10000 draws over 50 slots: 200 expected each; χ² with 49 dof stays far below 100.
-    let chi2: f64 = counts.iter().map(|&c| (c as f64 - 200.0).powi(2) / 200.0).sum();
+    let chi2: f64 = counts
+        .iter()
+        .map(|&c| (c as f64 - 200.0).powi(2) / 200.0)
+        .sum();
     assert!(chi2 < 100.0, "χ² = {chi2}");
     // Rows stay whole: obs, action, next obs of one transition.
     for r in 0..x.rows() {
@@ -99,10 +123,22 @@ fn minibatches_are_exactly_half_online_half_offline() {
     let tensors = batch.to_tensors(Kind::Float, Device::Cpu);
     for m in 0..minibatches as i64 {
         let mb = tensors.minibatch(m, size as i64).unwrap();
-        let online_rows = mb.action.select(1, 0).gt(0.0).sum(Kind::Int64).int64_value(&[]);
-        assert_eq!(online_rows, size as i64 / 2, "minibatch {m} is exactly 50/50");
+        let online_rows = mb
+            .action
+            .select(1, 0)
+            .gt(0.0)
+            .sum(Kind::Int64)
+            .int64_value(&[]);
+        assert_eq!(
+            online_rows,
+            size as i64 / 2,
+            "minibatch {m} is exactly 50/50"
+        );
     }
-    assert!(matches!(tensors.minibatch(minibatches as i64, size as i64), Err(LearnerError::Shape(_))));
+    assert!(matches!(
+        tensors.minibatch(minibatches as i64, size as i64),
+        Err(LearnerError::Shape(_))
+    ));
     // An odd minibatch cannot be split 50/50.
     assert!(matches!(replay.sample(2, 15), Err(LearnerError::Config(_))));
 }
@@ -114,13 +150,19 @@ fn without_offline_every_row_is_online_and_empty_buffers_are_refused() {
     assert_eq!(batch.rows(), 36);
     assert!(batch.action.iter().all(|&a| a >= 0.0));
     let mut empty = Replay::new(ReplayBuffer::new("online", 4, 3, 2).unwrap(), None, 0);
-    assert!(matches!(empty.sample(1, 2), Err(LearnerError::EmptyBuffer("online"))));
+    assert!(matches!(
+        empty.sample(1, 2),
+        Err(LearnerError::EmptyBuffer("online"))
+    ));
     let mut no_demos = Replay::new(
         tagged_buffer("online", 3, 4, 1.0),
         Some(ReplayBuffer::new("offline", 4, 3, 2).unwrap()),
         0,
     );
-    assert!(matches!(no_demos.sample(1, 2), Err(LearnerError::EmptyBuffer("offline"))));
+    assert!(matches!(
+        no_demos.sample(1, 2),
+        Err(LearnerError::EmptyBuffer("offline"))
+    ));
 }
 
 #[test]
@@ -141,7 +183,10 @@ fn transition_records_are_stored_field_by_field() {
     let mut buffer = ReplayBuffer::new("online", 4, 3, 2).unwrap();
     buffer.push_record(&layout.view(&bytes).unwrap()).unwrap();
     let batch = Replay::new(buffer, None, 0).sample(1, 1).unwrap();
-    assert_eq!((batch.obs, batch.action, batch.next_obs), (t.obs, t.action, t.next_obs));
+    assert_eq!(
+        (batch.obs, batch.action, batch.next_obs),
+        (t.obs, t.action, t.next_obs)
+    );
     assert_eq!((batch.reward, batch.mask), (vec![1.0], vec![1.0]));
     let mut wrong = ReplayBuffer::new("online", 4, 5, 2).unwrap();
     assert!(wrong.push_record(&layout.view(&bytes).unwrap()).is_err());
@@ -153,7 +198,12 @@ fn transition_records_are_stored_field_by_field() {
 #[test]
 fn data_action_scale_hand_computed_case() {
     let demos = [
-        demo(vec![0.2, -1.0, 0.0, 0.8, -0.5, 0.3, 0.0, 0.1], 4, 2, vec![false, true]),
+        demo(
+            vec![0.2, -1.0, 0.0, 0.8, -0.5, 0.3, 0.0, 0.1],
+            4,
+            2,
+            vec![false, true],
+        ),
         demo(vec![0.4, 0.9, 0.0, -0.7], 4, 2, vec![true]),
     ];
     let s = data_action_scale(&demos, 4, 1.25).unwrap();
@@ -182,11 +232,24 @@ fn demos_become_offline_transitions_in_agent_units() {
     for r in (1..batch.rows()).step_by(2) {
         let obs = &batch.obs[r * 3..r * 3 + 3];
         let t = (obs[0] / 3.0) as usize;
-        let (d, step) = if batch.action[r * 2] == -1.0 { (1, 0) } else { (0, t) };
-        let expected_action = [demos[d].actions[step * 2] * 2.0, demos[d].actions[step * 2 + 1]];
+        let (d, step) = if batch.action[r * 2] == -1.0 {
+            (1, 0)
+        } else {
+            (0, t)
+        };
+        let expected_action = [
+            demos[d].actions[step * 2] * 2.0,
+            demos[d].actions[step * 2 + 1],
+        ];
         assert_eq!(&batch.action[r * 2..r * 2 + 2], &expected_action);
-        assert_eq!(&batch.next_obs[r * 3..r * 3 + 3], demos[d].obs_row(step + 1));
-        assert_eq!(batch.reward[r], if demos[d].success[step] { 1.0 } else { 0.0 });
+        assert_eq!(
+            &batch.next_obs[r * 3..r * 3 + 3],
+            demos[d].obs_row(step + 1)
+        );
+        assert_eq!(
+            batch.reward[r],
+            if demos[d].success[step] { 1.0 } else { 0.0 }
+        );
         assert_eq!(batch.mask[r], 1.0);
         seen.insert((d, step));
     }
@@ -203,9 +266,18 @@ fn stage_transition_moves_online_to_offline() {
     assert!(replay.online.is_empty());
     assert_eq!(replay.online.capacity(), 8);
     let offline = replay.offline.as_ref().unwrap();
-    assert_eq!((offline.name(), offline.len(), offline.capacity()), ("offline", 6, 8));
-    assert!(matches!(replay.sample(1, 2), Err(LearnerError::EmptyBuffer("online"))));
-    replay.online.push(&[100.0; 3], &[100.0; 2], 100.0, 1.0, &[0.0; 3]).unwrap();
+    assert_eq!(
+        (offline.name(), offline.len(), offline.capacity()),
+        ("offline", 6, 8)
+    );
+    assert!(matches!(
+        replay.sample(1, 2),
+        Err(LearnerError::EmptyBuffer("online"))
+    ));
+    replay
+        .online
+        .push(&[100.0; 3], &[100.0; 2], 100.0, 1.0, &[0.0; 3])
+        .unwrap();
     let batch = replay.sample(20, 10).unwrap();
     for r in 0..batch.rows() {
         let expected_online = r % 2 == 0;
@@ -215,12 +287,19 @@ fn stage_transition_moves_online_to_offline() {
     }
 
     // load_as_online_buffer keeps it online with no offline buffer; neither flag drops both.
-    let mut keep = Replay::new(tagged_buffer("online", 6, 8, 1.0), Some(tagged_buffer("offline", 4, 4, -1.0)), 0);
+    let mut keep = Replay::new(
+        tagged_buffer("online", 6, 8, 1.0),
+        Some(tagged_buffer("offline", 4, 4, -1.0)),
+        0,
+    );
     keep.stage_transition(false, true).unwrap();
     assert_eq!((keep.online.len(), keep.offline.is_none()), (6, true));
     let mut both = Replay::new(tagged_buffer("online", 6, 8, 1.0), None, 0);
     both.stage_transition(true, true).unwrap();
-    assert_eq!((both.online.len(), both.offline.as_ref().unwrap().len()), (6, 6));
+    assert_eq!(
+        (both.online.len(), both.offline.as_ref().unwrap().len()),
+        (6, 6)
+    );
     let mut neither = Replay::new(tagged_buffer("online", 6, 8, 1.0), None, 0);
     neither.stage_transition(false, false).unwrap();
     assert_eq!((neither.online.len(), neither.offline.is_none()), (0, true));

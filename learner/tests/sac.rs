@@ -18,9 +18,17 @@ const ACT: usize = 3;
 /// A minibatch of `rows` rows with mixed masks.
 fn minibatch(rows: usize, seed: u64) -> (Batch, Vec<Vec<f64>>) {
     let obs = pseudo_random(rows * OBS, seed);
-    let action: Vec<f64> = pseudo_random(rows * ACT, seed + 1).iter().map(|a| a * 0.9).collect();
-    let reward: Vec<f64> = pseudo_random(rows, seed + 2).iter().map(|r| (r > &0.0) as u8 as f64).collect();
-    let mask: Vec<f64> = (0..rows).map(|i| if i % 3 == 2 { 0.0 } else { 1.0 }).collect();
+    let action: Vec<f64> = pseudo_random(rows * ACT, seed + 1)
+        .iter()
+        .map(|a| a * 0.9)
+        .collect();
+    let reward: Vec<f64> = pseudo_random(rows, seed + 2)
+        .iter()
+        .map(|r| (r > &0.0) as u8 as f64)
+        .collect();
+    let mask: Vec<f64> = (0..rows)
+        .map(|i| if i % 3 == 2 { 0.0 } else { 1.0 })
+        .collect();
     let next_obs = pseudo_random(rows * OBS, seed + 3);
     let batch = Batch {
         obs: tensor(rows, OBS, &obs),
@@ -56,15 +64,25 @@ fn all_params(sac: &Sac) -> HashMap<String, Vec<f64>> {
     out
 }
 
-fn changed(before: &HashMap<String, Vec<f64>>, after: &HashMap<String, Vec<f64>>, prefix: &str) -> bool {
-    before.iter().filter(|(k, _)| k.starts_with(prefix)).any(|(k, v)| after[k] != *v)
+fn changed(
+    before: &HashMap<String, Vec<f64>>,
+    after: &HashMap<String, Vec<f64>>,
+    prefix: &str,
+) -> bool {
+    before
+        .iter()
+        .filter(|(k, _)| k.starts_with(prefix))
+        .any(|(k, v)| after[k] != *v)
 }
 
 #[test]
 fn critic_loss_matches_independent_computation() {
     for backup_entropy in [false, true] {
         let (cfg, net) = small_config();
-        let cfg = SacConfig { backup_entropy, ..cfg };
+        let cfg = SacConfig {
+            backup_entropy,
+            ..cfg
+        };
         let sac = agent(&cfg, 1);
         let rows = 6;
         let (batch, raw) = minibatch(rows, 7);
@@ -82,13 +100,19 @@ fn critic_loss_matches_independent_computation() {
         for r in 0..rows {
             let s2 = &next_obs[r * OBS..(r + 1) * OBS];
             let (a2, log_p) = actor.sample(s2, &noise[r * ACT..(r + 1) * ACT]);
-            let mut v = members.iter().map(|&k| targets[k as usize].q(s2, &a2)).fold(f64::INFINITY, f64::min);
+            let mut v = members
+                .iter()
+                .map(|&k| targets[k as usize].q(s2, &a2))
+                .fold(f64::INFINITY, f64::min);
             if backup_entropy {
                 v -= alpha * log_p;
             }
             let y = reward[r] + cfg.discount * mask[r] * v;
             for (e, critic) in critics.iter().enumerate() {
-                let qe = critic.q(&obs[r * OBS..(r + 1) * OBS], &action[r * ACT..(r + 1) * ACT]);
+                let qe = critic.q(
+                    &obs[r * OBS..(r + 1) * OBS],
+                    &action[r * ACT..(r + 1) * ACT],
+                );
                 assert!((q[e * rows + r] - qe).abs() < 1e-12);
                 expected += (qe - y).powi(2);
             }
@@ -96,7 +120,10 @@ fn critic_loss_matches_independent_computation() {
         expected /= (rows * 4) as f64;
         let got = values(&loss)[0];
         // The textbook log(1 − tanh² u) of the naive actor loses ~1e-12 relative.
-        assert!((got - expected).abs() < 1e-10 * expected.abs(), "backup_entropy {backup_entropy}: {got} vs {expected}");
+        assert!(
+            (got - expected).abs() < 1e-10 * expected.abs(),
+            "backup_entropy {backup_entropy}: {got} vs {expected}"
+        );
     }
 }
 
@@ -173,7 +200,11 @@ fn check_gradients(vs: &nn::VarStore, loss: &dyn Fn() -> Tensor) {
             let fd = (at(original + h) - at(original - h)) / (2.0 * h);
             at(original);
             let tolerance = 1e-6 * (1.0 + fd.abs());
-            assert!((grad[i] - fd).abs() < tolerance, "{name}[{i}]: autograd {} vs finite difference {fd}", grad[i]);
+            assert!(
+                (grad[i] - fd).abs() < tolerance,
+                "{name}[{i}]: autograd {} vs finite difference {fd}",
+                grad[i]
+            );
             checked += 1;
         }
     }
@@ -186,7 +217,9 @@ fn critic_gradients_match_finite_differences() {
     let sac = agent(&cfg, 4);
     let (batch, _) = minibatch(6, 27);
     let noise = tensor(6, ACT, &pseudo_random(6 * ACT, 29));
-    check_gradients(sac.critic_vars(), &|| sac.critic_loss(&batch, &[1, 2], &noise).0);
+    check_gradients(sac.critic_vars(), &|| {
+        sac.critic_loss(&batch, &[1, 2], &noise).0
+    });
 }
 
 #[test]
@@ -205,10 +238,18 @@ fn each_update_changes_only_its_own_parameters() {
     let (batch, _) = minibatch(6, 47);
 
     let before = all_params(&sac);
-    let critic_before: HashMap<String, Tensor> =
-        sac.critic_vars().variables().into_iter().map(|(k, v)| (k, v.copy())).collect();
-    let target_before: HashMap<String, Tensor> =
-        sac.target_critic_vars().variables().into_iter().map(|(k, v)| (k, v.copy())).collect();
+    let critic_before: HashMap<String, Tensor> = sac
+        .critic_vars()
+        .variables()
+        .into_iter()
+        .map(|(k, v)| (k, v.copy()))
+        .collect();
+    let target_before: HashMap<String, Tensor> = sac
+        .target_critic_vars()
+        .variables()
+        .into_iter()
+        .map(|(k, v)| (k, v.copy()))
+        .collect();
     sac.update_critic(&batch);
     let after = all_params(&sac);
     assert!(changed(&before, &after, "critic/") && changed(&before, &after, "target/"));
@@ -219,7 +260,13 @@ fn each_update_changes_only_its_own_parameters() {
         let expected = &target_before[&name] * (1.0 - cfg.tau) + &critic_now[&name] * cfg.tau;
         let diff = (target - expected).abs().max().double_value(&[]);
         assert!(diff < 1e-15, "{name}: {diff}");
-        assert!(critic_before[&name].not_equal_tensor(&critic_now[&name]).any().int64_value(&[]) == 1);
+        assert!(
+            critic_before[&name]
+                .not_equal_tensor(&critic_now[&name])
+                .any()
+                .int64_value(&[])
+                == 1
+        );
     }
 
     let before = after;
@@ -253,7 +300,10 @@ fn target_members_are_distinct_within_the_pool_and_seeded() {
     }
     assert_eq!(pairs.len(), 45, "every unordered pair of 10 appears");
     for c in counts {
-        assert!((c as f64 - 4000.0).abs() < 300.0, "member frequency {c} vs 4000");
+        assert!(
+            (c as f64 - 4000.0).abs() < 300.0,
+            "member frequency {c} vs 4000"
+        );
     }
     // The reference's wall-time MS configs: pool {0, 1}, both always drawn.
     let mut rng = ChaCha8Rng::seed_from_u64(1);
@@ -262,7 +312,9 @@ fn target_members_are_distinct_within_the_pool_and_seeded() {
         drawn.sort();
         assert_eq!(drawn, vec![0, 1]);
     }
-    let other: Vec<_> = (0..5).map(|_| draw_target_members(&mut ChaCha8Rng::seed_from_u64(10), 10, 2)).collect();
+    let other: Vec<_> = (0..5)
+        .map(|_| draw_target_members(&mut ChaCha8Rng::seed_from_u64(10), 10, 2))
+        .collect();
     assert!(other.iter().all(|d| d == &other[0]));
 }
 
@@ -285,7 +337,9 @@ fn train_iteration_follows_the_schedule_of_spec_5_2() {
             let mb = batch.minibatch((round * f + k) as i64, b as i64).unwrap();
             critic_loss += values(&manual.update_critic(&mb).loss)[0];
         }
-        let last = batch.minibatch((round * f + f - 1) as i64, b as i64).unwrap();
+        let last = batch
+            .minibatch((round * f + f - 1) as i64, b as i64)
+            .unwrap();
         let step = manual.update_actor(&last.obs);
         actor_loss += values(&step.loss)[0];
         entropy += values(&step.entropy)[0];
@@ -296,7 +350,11 @@ fn train_iteration_follows_the_schedule_of_spec_5_2() {
     assert!((metrics.actor_loss - actor_loss / (g / f) as f64).abs() < 1e-12);
     assert!((metrics.entropy - entropy / (g / f) as f64).abs() < 1e-12);
     assert_eq!((metrics.critic_updates, metrics.actor_updates), (4, 2));
-    let steps: Vec<i64> = scheduled.optimizers().iter().map(|(_, o)| o.step_count()).collect();
+    let steps: Vec<i64> = scheduled
+        .optimizers()
+        .iter()
+        .map(|(_, o)| o.step_count())
+        .collect();
     assert_eq!(steps, vec![2, 4 + 1, 2]); // actor, critic (+1 in `agent`), temperature
 
     let tags: Vec<&str> = metrics.tagged().iter().map(|(t, _)| *t).collect();
@@ -312,13 +370,20 @@ fn train_iteration_follows_the_schedule_of_spec_5_2() {
         ]
     );
     // A batch of the wrong size is refused.
-    assert!(matches!(scheduled.train_iteration(&minibatch(6, 1).0), Err(LearnerError::Shape(_))));
+    assert!(matches!(
+        scheduled.train_iteration(&minibatch(6, 1).0),
+        Err(LearnerError::Shape(_))
+    ));
 }
 
 #[test]
 fn fixed_temperature_stays_put() {
     let (cfg, _) = small_config();
-    let cfg = SacConfig { learnable_temp: false, initial_temperature: 0.2, ..cfg };
+    let cfg = SacConfig {
+        learnable_temp: false,
+        initial_temperature: 0.2,
+        ..cfg
+    };
     let mut sac = agent(&cfg, 9);
     sac.update_temperature(&Tensor::from(5.0f64));
     assert!((values(&sac.alpha())[0] - 0.2).abs() < 1e-15);
@@ -336,15 +401,22 @@ fn adam_matches_libtorch_adam() {
     };
     let (ours_vs, theirs_vs) = (make(), make());
     let mut ours = Adam::new(&ours_vs, 1e-2, 0.9, 0.999, 1e-8);
-    let mut theirs = nn::Adam { beta1: 0.9, beta2: 0.999, wd: 0.0, eps: 1e-8, amsgrad: false }
-        .build(&theirs_vs, 1e-2)
-        .unwrap();
+    let mut theirs = nn::Adam {
+        beta1: 0.9,
+        beta2: 0.999,
+        wd: 0.0,
+        eps: 1e-8,
+        amsgrad: false,
+    }
+    .build(&theirs_vs, 1e-2)
+    .unwrap();
     for step in 0..20u64 {
         // loss = Σ c ⊙ p² with step-dependent c.
         let loss = |vs: &nn::VarStore| {
             let v = vs.variables();
             let c = tensor(3, 4, &pseudo_random(12, 10 + step));
-            (&c * v["w"].square()).sum(Kind::Double) + (v["b"].square() * (step as f64 - 7.0)).sum(Kind::Double)
+            (&c * v["w"].square()).sum(Kind::Double)
+                + (v["b"].square() * (step as f64 - 7.0)).sum(Kind::Double)
         };
         ours.minimize(&loss(&ours_vs));
         theirs.backward_step(&loss(&theirs_vs));
@@ -372,14 +444,35 @@ fn adam_matches_libtorch_adam() {
 fn impossible_configs_are_refused() {
     let (cfg, net) = small_config();
     let bad = [
-        SacConfig { actor_update_freq: 3, ..cfg.clone() },
-        SacConfig { num_min_qs: 4, ..cfg.clone() },
-        SacConfig { target_pool: 5, ..cfg.clone() },
-        SacConfig { critic_ensemble: 0, ..cfg.clone() },
-        SacConfig { initial_temperature: 0.0, ..cfg.clone() },
+        SacConfig {
+            actor_update_freq: 3,
+            ..cfg.clone()
+        },
+        SacConfig {
+            num_min_qs: 4,
+            ..cfg.clone()
+        },
+        SacConfig {
+            target_pool: 5,
+            ..cfg.clone()
+        },
+        SacConfig {
+            critic_ensemble: 0,
+            ..cfg.clone()
+        },
+        SacConfig {
+            initial_temperature: 0.0,
+            ..cfg.clone()
+        },
     ];
     for c in bad {
-        assert!(matches!(Sac::new(OBS, ACT, &c, &net, 0), Err(LearnerError::Config(_))), "{c:?}");
+        assert!(
+            matches!(
+                Sac::new(OBS, ACT, &c, &net, 0),
+                Err(LearnerError::Config(_))
+            ),
+            "{c:?}"
+        );
     }
     assert!(Sac::new(OBS, ACT, &cfg, &net, 0).is_ok());
 }

@@ -15,7 +15,11 @@ pub struct WireError {
 
 impl WireError {
     fn new(message: &'static str, field: &'static str, problem: impl Into<String>) -> Self {
-        Self { message, field, problem: problem.into() }
+        Self {
+            message,
+            field,
+            problem: problem.into(),
+        }
     }
 }
 
@@ -53,7 +57,7 @@ impl From<ResetArgs> for v1::ResetArgs {
         v1::ResetArgs {
             has_seed: args.seed.is_some(),
             seed: args.seed.unwrap_or(0),
-            options_json: serde_json::Value::Object(args.options).to_string(),
+            options_json: args.options.to_string(),
         }
     }
 }
@@ -62,17 +66,30 @@ impl TryFrom<v1::ResetArgs> for ResetArgs {
     type Error = WireError;
     fn try_from(wire: v1::ResetArgs) -> Result<Self, WireError> {
         let options = if wire.options_json.trim().is_empty() {
-            serde_json::Map::new()
+            serde_json::Value::Object(Default::default())
         } else {
             match serde_json::from_str(&wire.options_json) {
-                Ok(serde_json::Value::Object(map)) => map,
+                Ok(map @ serde_json::Value::Object(_)) => map,
                 Ok(other) => {
-                    return Err(WireError::new("ResetArgs", "options_json", format!("expected a JSON object, got {other}")))
+                    return Err(WireError::new(
+                        "ResetArgs",
+                        "options_json",
+                        format!("expected a JSON object, got {other}"),
+                    ))
                 }
-                Err(err) => return Err(WireError::new("ResetArgs", "options_json", format!("invalid JSON: {err}"))),
+                Err(err) => {
+                    return Err(WireError::new(
+                        "ResetArgs",
+                        "options_json",
+                        format!("invalid JSON: {err}"),
+                    ))
+                }
             }
         };
-        Ok(ResetArgs { seed: wire.has_seed.then_some(wire.seed), options })
+        Ok(ResetArgs {
+            seed: wire.has_seed.then_some(wire.seed),
+            options,
+        })
     }
 }
 
@@ -98,12 +115,24 @@ impl TryFrom<v1::ResetLease> for ResetLease {
     fn try_from(wire: v1::ResetLease) -> Result<Self, WireError> {
         let kind = lease_kind(wire.kind)?;
         if wire.time_limit == 0 {
-            return Err(WireError::new("ResetLease", "time_limit", "expected at least 1 step, got 0"));
+            return Err(WireError::new(
+                "ResetLease",
+                "time_limit",
+                "expected at least 1 step, got 0",
+            ));
         }
         if kind == LeaseKind::DemoState && wire.env_state.is_empty() {
-            return Err(WireError::new("ResetLease", "env_state", "a DEMO_STATE lease needs the demo's env state, got none"));
+            return Err(WireError::new(
+                "ResetLease",
+                "env_state",
+                "a DEMO_STATE lease needs the demo's env state, got none",
+            ));
         }
-        let reset = wire.reset.map(ResetArgs::try_from).transpose()?.unwrap_or_default();
+        let reset = wire
+            .reset
+            .map(ResetArgs::try_from)
+            .transpose()?
+            .unwrap_or_default();
         Ok(ResetLease {
             lease_id: wire.lease_id,
             kind,
@@ -121,13 +150,21 @@ impl TryFrom<v1::ResetLease> for ResetLease {
 
 impl From<AcquireRequest> for v1::AcquireRequest {
     fn from(req: AcquireRequest) -> Self {
-        v1::AcquireRequest { actor_id: req.actor_id, env_index: req.env_index, eval: req.eval }
+        v1::AcquireRequest {
+            actor_id: req.actor_id,
+            env_index: req.env_index,
+            eval: req.eval,
+        }
     }
 }
 
 impl From<v1::AcquireRequest> for AcquireRequest {
     fn from(wire: v1::AcquireRequest) -> Self {
-        AcquireRequest { actor_id: wire.actor_id, env_index: wire.env_index, eval: wire.eval }
+        AcquireRequest {
+            actor_id: wire.actor_id,
+            env_index: wire.env_index,
+            eval: wire.eval,
+        }
     }
 }
 
@@ -152,16 +189,32 @@ impl TryFrom<v1::EpisodeReport> for EpisodeReport {
     type Error = WireError;
     fn try_from(wire: v1::EpisodeReport) -> Result<Self, WireError> {
         if wire.lease_id == 0 {
-            return Err(WireError::new("EpisodeReport", "lease_id", "expected a lease id from Acquire, got 0"));
+            return Err(WireError::new(
+                "EpisodeReport",
+                "lease_id",
+                "expected a lease id from Acquire, got 0",
+            ));
         }
         if wire.length == 0 {
-            return Err(WireError::new("EpisodeReport", "length", "expected at least 1 step, got 0"));
+            return Err(WireError::new(
+                "EpisodeReport",
+                "length",
+                "expected at least 1 step, got 0",
+            ));
         }
         if !wire.episode_return.is_finite() {
-            return Err(WireError::new("EpisodeReport", "episode_return", format!("expected a finite number, got {}", wire.episode_return)));
+            return Err(WireError::new(
+                "EpisodeReport",
+                "episode_return",
+                format!("expected a finite number, got {}", wire.episode_return),
+            ));
         }
         if wire.success_at_end && !wire.success_once {
-            return Err(WireError::new("EpisodeReport", "success_once", "success_at_end is true, so success_once must be true"));
+            return Err(WireError::new(
+                "EpisodeReport",
+                "success_once",
+                "success_at_end is true, so success_once must be true",
+            ));
         }
         Ok(EpisodeReport {
             lease_id: wire.lease_id,
@@ -183,15 +236,17 @@ mod tests {
     use super::*;
 
     fn lease() -> ResetLease {
-        let mut options = serde_json::Map::new();
-        options.insert("goal".into(), serde_json::json!([1.0, 2.0]));
+        let options = serde_json::json!({"goal": [1.0, 2.0]});
         ResetLease {
             lease_id: 7,
             kind: LeaseKind::DemoState,
             demo_id: 2,
             start_index: 40,
             env_state: vec![0.5, -1.0, 3.25],
-            reset: ResetArgs { seed: Some(11), options },
+            reset: ResetArgs {
+                seed: Some(11),
+                options,
+            },
             time_limit: 17,
             stage: 1,
             stage_epoch: 0,
@@ -222,13 +277,22 @@ mod tests {
         let mut wire: v1::ResetLease = lease().into();
         wire.kind = 0;
         let err = ResetLease::try_from(wire.clone()).unwrap_err();
-        assert_eq!(err.to_string(), "malformed ResetLease.kind: expected DEMO_STATE, LEVEL or EVAL, got 0");
+        assert_eq!(
+            err.to_string(),
+            "malformed ResetLease.kind: expected DEMO_STATE, LEVEL or EVAL, got 0"
+        );
         wire.kind = 1;
         wire.env_state.clear();
-        assert_eq!(ResetLease::try_from(wire.clone()).unwrap_err().field, "env_state");
+        assert_eq!(
+            ResetLease::try_from(wire.clone()).unwrap_err().field,
+            "env_state"
+        );
         wire.env_state = vec![1.0];
         wire.reset.as_mut().unwrap().options_json = "[1,2]".into();
-        assert_eq!(ResetLease::try_from(wire).unwrap_err().field, "options_json");
+        assert_eq!(
+            ResetLease::try_from(wire).unwrap_err().field,
+            "options_json"
+        );
     }
 
     #[test]
@@ -249,10 +313,16 @@ mod tests {
         assert_eq!(EpisodeReport::try_from(wire.clone()).unwrap(), report);
         let mut bad = wire.clone();
         bad.episode_return = f64::NAN;
-        assert_eq!(EpisodeReport::try_from(bad).unwrap_err().field, "episode_return");
+        assert_eq!(
+            EpisodeReport::try_from(bad).unwrap_err().field,
+            "episode_return"
+        );
         let mut bad = wire.clone();
         bad.success_once = false;
-        assert_eq!(EpisodeReport::try_from(bad).unwrap_err().field, "success_once");
+        assert_eq!(
+            EpisodeReport::try_from(bad).unwrap_err().field,
+            "success_once"
+        );
         let mut bad = wire;
         bad.lease_id = 0;
         let status: tonic::Status = EpisodeReport::try_from(bad).unwrap_err().into();

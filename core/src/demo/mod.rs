@@ -49,7 +49,7 @@ pub use layout::{StateEntry, StateKind, StateLayout};
 
 /// The arguments a demo's episode was reset with; applied before the demo's state (spec 2.4)
 /// because geometry, goals and MetaWorld's random vector live outside the state vector.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ResetArgs {
     /// `reset_kwargs.seed`, else `episode_seed`; `None` without a sidecar.
     pub seed: Option<u64>,

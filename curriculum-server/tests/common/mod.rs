@@ -32,10 +32,15 @@ pub fn write_demos(dir: &Path, n: usize, t: usize) -> PathBuf {
             obs: (0..(t + 1) * OBS).map(|k| k as f32).collect(),
             actions: vec![0.1; t * ACT],
             success: (0..t).map(|s| s + 5 >= t).collect(),
-            env_states: (0..=t).flat_map(|s| [i as f32, s as f32, 0.5, -0.5]).collect(),
+            env_states: (0..=t)
+                .flat_map(|s| [i as f32, s as f32, 0.5, -0.5])
+                .collect(),
             succeeded: true,
             success_source: SuccessSource::Steps,
-            reset: ResetArgs { seed: Some(100 + i as u64), options: serde_json::json!({}) },
+            reset: ResetArgs {
+                seed: Some(100 + i as u64),
+                options: serde_json::json!({}),
+            },
         })
         .collect();
     let path = dir.join("demos.h5");
@@ -89,11 +94,23 @@ impl ServerProcess {
             .expect("starting curriculum-server");
         drop(guard);
         let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-        let grpc = line.split("grpc=").nth(1).and_then(|s| s.split_whitespace().next());
-        let dashboard = line.split("dashboard=").nth(1).map(|s| s.trim().to_string());
+        BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        let grpc = line
+            .split("grpc=")
+            .nth(1)
+            .and_then(|s| s.split_whitespace().next());
+        let dashboard = line
+            .split("dashboard=")
+            .nth(1)
+            .map(|s| s.trim().to_string());
         match (grpc, dashboard) {
-            (Some(g), Some(d)) => ServerProcess { grpc: format!("http://{g}"), dashboard: d, child },
+            (Some(g), Some(d)) => ServerProcess {
+                grpc: format!("http://{g}"),
+                dashboard: d,
+                child,
+            },
             _ => {
                 let status = child.wait().unwrap();
                 panic!("curriculum-server did not start ({status}); its first line was {line:?}")
@@ -102,7 +119,9 @@ impl ServerProcess {
     }
 
     pub async fn client(&self) -> CurriculumClient<Channel> {
-        CurriculumClient::connect(self.grpc.clone()).await.expect("connecting to the curriculum server")
+        CurriculumClient::connect(self.grpc.clone())
+            .await
+            .expect("connecting to the curriculum server")
     }
 
     pub fn sigkill(&mut self) {
@@ -112,7 +131,11 @@ impl ServerProcess {
 
     /// SIGTERM and wait: the server writes its final snapshot.
     pub fn sigterm(&mut self) -> std::process::ExitStatus {
-        Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status().unwrap();
+        Command::new("kill")
+            .arg("-TERM")
+            .arg(self.child.id().to_string())
+            .status()
+            .unwrap();
         self.child.wait().unwrap()
     }
 }

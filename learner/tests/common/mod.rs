@@ -36,10 +36,14 @@ pub fn small_config() -> (SacConfig, NetworkConfig) {
 
 /// Deterministic pseudo-random numbers in [-1, 1] (a tiny LCG, independent of the library).
 pub fn pseudo_random(n: usize, seed: u64) -> Vec<f64> {
-    let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut state = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     (0..n)
         .map(|_| {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((state >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
         })
         .collect()
@@ -57,7 +61,12 @@ pub struct NaiveDense {
 impl NaiveDense {
     pub fn apply(&self, x: &[f64]) -> Vec<f64> {
         (0..self.fan_out)
-            .map(|o| self.b[o] + (0..self.fan_in).map(|i| x[i] * self.w[i * self.fan_out + o]).sum::<f64>())
+            .map(|o| {
+                self.b[o]
+                    + (0..self.fan_in)
+                        .map(|i| x[i] * self.w[i * self.fan_out + o])
+                        .sum::<f64>()
+            })
             .collect()
     }
 }
@@ -88,7 +97,9 @@ impl NaiveActor {
             }
         };
         Self {
-            trunk: (0..net.actor_features.len()).map(|i| dense(&format!("trunk{i}"))).collect(),
+            trunk: (0..net.actor_features.len())
+                .map(|i| dense(&format!("trunk{i}")))
+                .collect(),
             mean: dense("mean"),
             log_std: dense("log_std"),
             log_std_min: net.log_std_min,
@@ -107,7 +118,9 @@ impl NaiveActor {
             .log_std
             .apply(&h)
             .into_iter()
-            .map(|x| self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (x.tanh() + 1.0))
+            .map(|x| {
+                self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (x.tanh() + 1.0)
+            })
             .collect();
         (mean, log_std)
     }
@@ -150,7 +163,9 @@ impl NaiveCritic {
         let b_all = values(&v["input.bias"]);
         let mut w = Vec::new();
         for i in 0..fan_in {
-            w.extend_from_slice(&w_all[i * members * width + e * width..i * members * width + (e + 1) * width]);
+            w.extend_from_slice(
+                &w_all[i * members * width + e * width..i * members * width + (e + 1) * width],
+            );
         }
         let mut layers = vec![NaiveDense {
             w,
@@ -178,14 +193,21 @@ impl NaiveCritic {
                 .enumerate()
                 .map(|(i, &width)| {
                     let width = width as usize;
-                    let part = |t: &str| values(&v[&format!("norm{i}.{t}")])[e * width..(e + 1) * width].to_vec();
+                    let part = |t: &str| {
+                        values(&v[&format!("norm{i}.{t}")])[e * width..(e + 1) * width].to_vec()
+                    };
                     (part("scale"), part("bias"))
                 })
                 .collect()
         } else {
             Vec::new()
         };
-        Self { layers, norms, output: stacked("output"), eps: net.layer_norm_eps }
+        Self {
+            layers,
+            norms,
+            output: stacked("output"),
+            eps: net.layer_norm_eps,
+        }
     }
 
     pub fn q(&self, obs: &[f64], action: &[f64]) -> f64 {
@@ -209,5 +231,7 @@ impl NaiveCritic {
 }
 
 pub fn naive_critics(vs: &nn::VarStore, net: &NetworkConfig, members: usize) -> Vec<NaiveCritic> {
-    (0..members).map(|e| NaiveCritic::member(vs, net, members, e)).collect()
+    (0..members)
+        .map(|e| NaiveCritic::member(vs, net, members, e))
+        .collect()
 }
