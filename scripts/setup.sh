@@ -81,8 +81,8 @@ fi
 # ---------------------------------------------------------------- rust build
 if [ $BUILD = 1 ]; then
   step "cargo build --release (first build ~6 min on 2 cores; incremental builds take seconds)"
-  export LIBTORCH_USE_PYTORCH=1 PYO3_PYTHON="$VENV/bin/python"
-  export PATH="$VENV/bin:$PATH"
-  cargo build --release --quiet || fail "cargo build --release"
+  # torch-sys asks `python` (with VIRTUAL_ENV set) for libtorch: it must be the venv's.
+  export LIBTORCH_USE_PYTORCH=1 PYO3_PYTHON="$VENV/bin/python" VIRTUAL_ENV="$VENV" PATH="$VENV/bin:$PATH"
+  cargo build --release --workspace --quiet || fail "cargo build --release --workspace"
 fi
 step "set-up done"

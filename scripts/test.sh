@@ -3,6 +3,8 @@
 # Python package's tests. Assumes scripts/setup.sh has run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# torch-sys asks `python` (with VIRTUAL_ENV set) for libtorch: it must be the venv's.
+export VIRTUAL_ENV="$PWD/.venv" PATH="$PWD/.venv/bin:$PATH"
 export LIBTORCH_USE_PYTORCH=1 PYO3_PYTHON="$PWD/.venv/bin/python"
 echo "==> python tests (python/tests)"
 .venv/bin/python -m pytest -q python/tests

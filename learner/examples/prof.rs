@@ -96,6 +96,17 @@ fn main() {
         let g = Tensor::run_backward(&[l], &sac.optimizers()[1].1.params(), false, false);
         sac.optimizers_mut()[1].1.step(g);
     });
+    {
+        use tch::nn::OptimizerConfig;
+        let vs = sac.critic_vars();
+        let cs: Vec<Tensor> = vs.trainable_variables().iter().map(|p| p.randn_like()).collect();
+        let vars = vs.trainable_variables();
+        let loss = || vars.iter().zip(&cs).map(|(p, c)| (p * c).sum(Kind::Float)).fold(Tensor::zeros([], (Kind::Float, tch::Device::Cpu)), |a, b| a + b);
+        let mut theirs = tch::nn::Adam::default().build(vs, 1e-4).unwrap();
+        time("tch Adam backward_step (critic)", 20, || theirs.backward_step(&loss()));
+        let mut ours = rfcl_learner::adam::Adam::new(vs, 1e-4, 0.9, 0.999, 1e-8);
+        time("our Adam minimize (critic)", 20, || ours.minimize(&loss()));
+    }
     let (_, opt) = &mut sac.optimizers_mut()[1];
     let grads: Vec<Tensor> = opt.params().iter().map(|p| p.randn_like()).collect();
     let _ = 0;
