@@ -20,9 +20,11 @@ pub struct AcquireReportResult {
     pub errors: u64,
 }
 
-/// Runs `clients` concurrent clients (one connection each) for `duration`; each loops Acquire, then
-/// Report with a random outcome (success more likely near the end of a demo, so the curriculum
-/// moves). Latency is that of one Acquire + Report pair.
+/// Runs `clients` concurrent clients (one connection each) for `duration`. Each acquires a lease,
+/// then loops ReportAndAcquire (an actor's steady state: report the finished episode, get the next
+/// lease) with a random outcome (success more likely near the end of a demo, so the curriculum
+/// moves). A refused report (e.g. of a stage-1 lease after the stage changed) is counted as an error
+/// and followed by a plain Acquire. Latency is that of one Report + Acquire pair.
 pub async fn acquire_report(
     addr: &str,
     clients: usize,
@@ -42,20 +44,14 @@ pub async fn acquire_report(
                 let mut rng = ChaCha8Rng::seed_from_u64(i as u64);
                 let mut lat_us: Vec<u32> = Vec::with_capacity(1 << 16);
                 let mut errors = 0u64;
+                let next = v1::AcquireRequest {
+                    actor_id: i as u32,
+                    env_index: 0,
+                    eval: false,
+                };
+                let mut lease = client.acquire(next).await?.into_inner();
                 while Instant::now() < deadline {
                     let t0 = Instant::now();
-                    let req = v1::AcquireRequest {
-                        actor_id: i as u32,
-                        env_index: 0,
-                        eval: false,
-                    };
-                    let lease = match client.acquire(req).await {
-                        Ok(l) => l.into_inner(),
-                        Err(_) => {
-                            errors += 1;
-                            continue;
-                        }
-                    };
                     let near_end =
                         lease.kind != v1::LeaseKind::DemoState as i32 || lease.time_limit <= 20;
                     let success = rng.random_bool(if near_end { 0.9 } else { 0.3 });
@@ -71,20 +67,32 @@ pub async fn acquire_report(
                         actor_env_steps: 0,
                         policy_env_steps: 0,
                     };
-                    if client.report(report).await.is_err() {
-                        errors += 1;
-                        continue;
+                    let request = v1::ReportAndAcquireRequest {
+                        report: Some(report),
+                        next: Some(next),
+                    };
+                    match client.report_and_acquire(request).await {
+                        Ok(reply) => {
+                            lat_us.push(t0.elapsed().as_micros().min(u32::MAX as u128) as u32);
+                            lease = reply
+                                .into_inner()
+                                .lease
+                                .ok_or_else(|| anyhow::anyhow!("a reply without a lease"))?;
+                        }
+                        Err(_) => {
+                            errors += 1;
+                            lease = client.acquire(next).await?.into_inner();
+                        }
                     }
-                    lat_us.push(t0.elapsed().as_micros().min(u32::MAX as u128) as u32);
                 }
-                (lat_us, errors)
+                anyhow::Ok((lat_us, errors))
             })
         })
         .collect();
     let mut all = Vec::new();
     let mut errors = 0;
     for t in tasks {
-        let (lat, e) = t.await?;
+        let (lat, e) = t.await??;
         all.extend(lat);
         errors += e;
     }

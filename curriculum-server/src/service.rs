@@ -505,6 +505,70 @@ pub struct CurriculumService {
     pub shared: Shared,
 }
 
+impl CurriculumService {
+    /// Applies a report and, if asked, hands out the next lease, under one lock. A refused report
+    /// (other than a repeat, which is acknowledged) fails with its status and hands out nothing.
+    fn report_then_acquire(
+        &self,
+        report: EpisodeReport,
+        next: Option<AcquireRequest>,
+    ) -> Result<(v1::ReportAck, Option<ResetLease>), Status> {
+        let now = unix_now();
+        let (result, lease, event, snapshot_due) = {
+            let mut state = self.shared.lock();
+            let result = match state.report(&report, now) {
+                Ok(r) => Ok(r),
+                // A repeated report is acknowledged and changes nothing (exactly-once).
+                Err(ReportError::Refused(ReportRefusal::Duplicate(_))) => Ok(ReportResult {
+                    applied: false,
+                    stage_event: None,
+                }),
+                Err(e) => Err(e),
+            };
+            let lease = match (&result, next) {
+                (Ok(_), Some(req)) => {
+                    Some(state.acquire(req, &self.shared.cfg, &self.shared.demos, now))
+                }
+                _ => None,
+            };
+            let due =
+                state.reports_since_snapshot >= self.shared.cfg.service.snapshot_every_reports;
+            (result, lease, state.stage_event(), due)
+        };
+        if snapshot_due {
+            self.shared.snapshot_due.notify_one();
+        }
+        let result = result?;
+        if let Some(ev) = result.stage_event {
+            tracing::info!(
+                stage = ev.stage,
+                epoch = ev.stage_epoch,
+                env_steps = ev.at_env_steps,
+                "stage change"
+            );
+            self.shared.stage_tx.send_replace(ev);
+        }
+        let ack = v1::ReportAck {
+            applied: result.applied,
+            stage: event.stage,
+            stage_epoch: event.stage_epoch,
+        };
+        let lease = lease.transpose().map_err(acquire_status)?;
+        Ok((ack, lease))
+    }
+
+    fn count_malformed(&self) {
+        self.shared.lock().stats.malformed_reports += 1;
+    }
+}
+
+fn acquire_status(err: CurriculumError) -> Status {
+    match err {
+        CurriculumError::Finished => Status::failed_precondition(err.to_string()),
+        e => Status::internal(e.to_string()),
+    }
+}
+
 type StageStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<v1::StageEvent, Status>> + Send>>;
 
 #[tonic::async_trait]
@@ -514,67 +578,36 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
         request: Request<v1::AcquireRequest>,
     ) -> Result<Response<v1::ResetLease>, Status> {
         let req = AcquireRequest::from(request.into_inner());
-        let lease = {
-            let mut state = self.shared.lock();
-            state.acquire(req, &self.shared.cfg, &self.shared.demos, unix_now())
-        };
-        match lease {
-            Ok(lease) => Ok(Response::new(lease.into())),
-            Err(CurriculumError::Finished) => Err(Status::failed_precondition(
-                CurriculumError::Finished.to_string(),
-            )),
-            Err(e) => Err(Status::internal(e.to_string())),
-        }
+        let lease =
+            self.shared
+                .lock()
+                .acquire(req, &self.shared.cfg, &self.shared.demos, unix_now());
+        lease
+            .map(|l| Response::new(l.into()))
+            .map_err(acquire_status)
     }
 
     async fn report(
         &self,
         request: Request<v1::EpisodeReport>,
     ) -> Result<Response<v1::ReportAck>, Status> {
-        let report = match EpisodeReport::try_from(request.into_inner()) {
-            Ok(r) => r,
-            Err(e) => {
-                self.shared.lock().stats.malformed_reports += 1;
-                return Err(e.into());
-            }
-        };
-        let (result, event, snapshot_due) = {
-            let mut state = self.shared.lock();
-            let result = state.report(&report, unix_now());
-            let due =
-                state.reports_since_snapshot >= self.shared.cfg.service.snapshot_every_reports;
-            (result, state.stage_event(), due)
-        };
-        if snapshot_due {
-            self.shared.snapshot_due.notify_one();
-        }
-        match result {
-            Ok(r) => {
-                if let Some(ev) = r.stage_event {
-                    tracing::info!(
-                        stage = ev.stage,
-                        epoch = ev.stage_epoch,
-                        env_steps = ev.at_env_steps,
-                        "stage change"
-                    );
-                    self.shared.stage_tx.send_replace(ev);
-                }
-                Ok(Response::new(v1::ReportAck {
-                    applied: r.applied,
-                    stage: event.stage,
-                    stage_epoch: event.stage_epoch,
-                }))
-            }
-            // A repeated report is acknowledged and changes nothing (exactly-once).
-            Err(ReportError::Refused(ReportRefusal::Duplicate(_))) => {
-                Ok(Response::new(v1::ReportAck {
-                    applied: false,
-                    stage: event.stage,
-                    stage_epoch: event.stage_epoch,
-                }))
-            }
-            Err(e) => Err(e.into()),
-        }
+        let report = EpisodeReport::try_from(request.into_inner())
+            .inspect_err(|_| self.count_malformed())?;
+        let (ack, _) = self.report_then_acquire(report, None)?;
+        Ok(Response::new(ack))
+    }
+
+    async fn report_and_acquire(
+        &self,
+        request: Request<v1::ReportAndAcquireRequest>,
+    ) -> Result<Response<v1::ReportAndAcquireReply>, Status> {
+        let (report, next) = rfcl_proto::convert::report_and_acquire(request.into_inner())
+            .inspect_err(|_| self.count_malformed())?;
+        let (ack, lease) = self.report_then_acquire(report, Some(next))?;
+        Ok(Response::new(v1::ReportAndAcquireReply {
+            ack: Some(ack),
+            lease: lease.map(Into::into),
+        }))
     }
 
     type WatchStageStream = StageStream;

@@ -271,18 +271,54 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     );
     assert_eq!(curriculum_part(&state_view(&mut client).await), after_one);
 
+    // ReportAndAcquire: the report applies once and the next lease comes back in the same reply.
+    let lease2 = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+    let both = v1::ReportAndAcquireRequest {
+        report: Some(report_for(&lease2, false, 0.0)),
+        next: Some(acquire_req(0)),
+    };
+    let reply = client
+        .report_and_acquire(both.clone())
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(reply.ack.unwrap().applied);
+    let lease3 = reply.lease.expect("the next lease");
+    assert!(lease3.lease_id > lease2.lease_id);
+    // Repeated: acknowledged, not applied, and still a fresh lease.
+    let reply = client.report_and_acquire(both).await.unwrap().into_inner();
+    assert!(!reply.ack.unwrap().applied);
+    assert!(reply.lease.unwrap().lease_id > lease3.lease_id);
+    // Refused: the call fails with Report's status and hands out no lease.
+    let mut unknown = report_for(&lease3, true, 1.0);
+    unknown.lease_id = 888_888;
+    let open_before = state_view(&mut client).await.open_leases;
+    let refused = v1::ReportAndAcquireRequest {
+        report: Some(unknown),
+        next: Some(acquire_req(0)),
+    };
+    let status = client.report_and_acquire(refused).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::NotFound);
+    assert_eq!(state_view(&mut client).await.open_leases, open_before);
+    let empty = v1::ReportAndAcquireRequest {
+        report: None,
+        next: None,
+    };
+    let status = client.report_and_acquire(empty).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument);
+
     let view = state_view(&mut client).await;
     let r = view.refused_reports;
     assert_eq!(
         (r.malformed, r.unknown, r.epoch_mismatch, r.duplicate),
-        (2, 1, 1, 1)
+        (3, 2, 1, 2)
     );
     assert_eq!(
         view.actors.len(),
         1,
         "the actor is listed with its last-seen time"
     );
-    assert_eq!((view.actors[0].actor_id, view.actors[0].episodes), (0, 1));
+    assert_eq!((view.actors[0].actor_id, view.actors[0].episodes), (0, 2));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

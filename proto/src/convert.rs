@@ -231,6 +231,19 @@ impl TryFrom<v1::EpisodeReport> for EpisodeReport {
     }
 }
 
+/// The two halves of a `ReportAndAcquire` call.
+pub fn report_and_acquire(
+    wire: v1::ReportAndAcquireRequest,
+) -> Result<(EpisodeReport, AcquireRequest), WireError> {
+    let report = wire
+        .report
+        .ok_or_else(|| WireError::new("ReportAndAcquireRequest", "report", "missing"))?;
+    let next = wire
+        .next
+        .ok_or_else(|| WireError::new("ReportAndAcquireRequest", "next", "missing"))?;
+    Ok((EpisodeReport::try_from(report)?, next.into()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -293,6 +306,38 @@ mod tests {
             ResetLease::try_from(wire).unwrap_err().field,
             "options_json"
         );
+    }
+
+    #[test]
+    fn report_and_acquire_needs_both_halves() {
+        let err = report_and_acquire(v1::ReportAndAcquireRequest {
+            report: None,
+            next: Some(Default::default()),
+        });
+        assert_eq!(
+            err.unwrap_err().to_string(),
+            "malformed ReportAndAcquireRequest.report: missing"
+        );
+        let report = v1::EpisodeReport {
+            lease_id: 1,
+            length: 3,
+            ..Default::default()
+        };
+        let err = report_and_acquire(v1::ReportAndAcquireRequest {
+            report: Some(report.clone()),
+            next: None,
+        });
+        assert_eq!(err.unwrap_err().field, "next");
+        let (r, next) = report_and_acquire(v1::ReportAndAcquireRequest {
+            report: Some(report),
+            next: Some(v1::AcquireRequest {
+                actor_id: 3,
+                env_index: 1,
+                eval: false,
+            }),
+        })
+        .unwrap();
+        assert_eq!((r.lease_id, next.actor_id, next.env_index), (1, 3, 1));
     }
 
     #[test]
