@@ -10,7 +10,7 @@ use rand::Rng;
 use rfcl_core::config::{ForwardConfig, ForwardScore, LevelMix};
 use serde::{Deserialize, Serialize};
 
-use crate::rank::{draw, normalise, Transform, POWER_EPS_WITHOUT_STALENESS};
+use crate::rank::{draw_with, normalise, Transform, POWER_EPS_WITHOUT_STALENESS};
 use crate::reverse::DemoMeta;
 use crate::CurriculumError;
 
@@ -49,6 +49,20 @@ pub struct Level {
 pub struct Forward {
     config: ForwardConfig,
     levels: Vec<Level>,
+    /// P_S as a cumulative distribution, valid until a score changes (derived, never saved).
+    #[serde(skip)]
+    score_cdf: ScoreCdf,
+}
+
+/// A cache that takes no part in equality: two curricula with the same levels are equal whether
+/// or not one of them has computed its cache.
+#[derive(Debug, Clone, Default)]
+struct ScoreCdf(Option<Vec<f64>>);
+
+impl PartialEq for ScoreCdf {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
 }
 
 impl Forward {
@@ -77,7 +91,11 @@ impl Forward {
         if levels.is_empty() {
             return Err(CurriculumError::NoLevels);
         }
-        Ok(Self { config, levels })
+        Ok(Self {
+            config,
+            levels,
+            score_cdf: ScoreCdf::default(),
+        })
     }
 
     pub fn config(&self) -> &ForwardConfig {
@@ -96,13 +114,105 @@ impl Forward {
     }
 
     /// Draws a level and updates staleness: every level +1, the drawn one 0 (spec 3.5).
+    ///
+    /// P is the mixture (1 - c)·P_S + c·P_C (the paper's mix: ½·P_S + ½·P_C), so one uniform number
+    /// picks the component and then the level within it: the same distribution as drawing from
+    /// [`probabilities`](Self::probabilities), but P_S (which changes only when a score does) is
+    /// cached and P_C is computed only for the draws that need it.
     pub fn sample<R: Rng + ?Sized>(&mut self, rng: &mut R) -> usize {
-        let level = draw(&self.probabilities(), rng);
+        let (w_scores, _) = self.mixture_weights();
+        let u: f64 = rng.random();
+        let level = if u < w_scores {
+            let cdf = self.score_cdf();
+            match cdf.partition_point(|&c| c <= u / w_scores) {
+                i if i < cdf.len() => i,
+                // Rounding left the total just below u: take the last level that has mass.
+                _ => (0..cdf.len())
+                    .rev()
+                    .find(|&i| i == 0 || cdf[i] > cdf[i - 1])
+                    .unwrap_or(0),
+            }
+        } else {
+            draw_with(
+                &self.staleness_probabilities(),
+                (u - w_scores) / (1.0 - w_scores),
+            )
+        };
         for l in &mut self.levels {
             l.staleness += 1;
         }
         self.levels[level].staleness = 0;
         level
+    }
+
+    /// The weights of P_S and P_C in the mixture (spec 3.5).
+    fn mixture_weights(&self) -> (f64, f64) {
+        match self.config.mix {
+            LevelMix::Reference => (1.0 - self.config.staleness_coef, self.config.staleness_coef),
+            LevelMix::Paper => (0.5, 0.5),
+        }
+    }
+
+    fn transform(&self, kind: rfcl_core::config::ScoreTransform, temperature: f64) -> Transform {
+        let power_eps = if self.config.staleness_coef > 0.0 {
+            0.0
+        } else {
+            POWER_EPS_WITHOUT_STALENESS
+        };
+        Transform {
+            kind,
+            temperature,
+            power_eps,
+        }
+    }
+
+    /// P_S (spec 3.5 step 1).
+    fn score_probabilities(&self) -> Vec<f64> {
+        let scores: Vec<f64> = self.levels.iter().map(|l| l.score).collect();
+        self.transform(self.config.score_transform, self.config.score_temperature)
+            .probabilities(&scores)
+    }
+
+    /// P_C (spec 3.5 step 2; the paper's linear form for the paper mix).
+    fn staleness_probabilities(&self) -> Vec<f64> {
+        let staleness: Vec<f64> = self.levels.iter().map(|l| l.staleness as f64).collect();
+        match self.config.mix {
+            LevelMix::Reference => self
+                .transform(
+                    self.config.staleness_transform,
+                    self.config.staleness_temperature,
+                )
+                .probabilities(&staleness),
+            LevelMix::Paper => normalise(&staleness),
+        }
+    }
+
+    fn score_cdf(&mut self) -> &[f64] {
+        if self.score_cdf.0.is_none() {
+            let mut total = 0.0;
+            let cdf = self
+                .score_probabilities()
+                .into_iter()
+                .map(|p| {
+                    total += p;
+                    total
+                })
+                .collect();
+            self.score_cdf.0 = Some(cdf);
+        }
+        self.score_cdf.0.as_deref().expect("just computed")
+    }
+
+    /// The distribution [`sample`](Self::sample) draws from, computed its way (for tests: it must
+    /// equal [`probabilities`](Self::probabilities)).
+    pub fn sampling_distribution(&self) -> Vec<f64> {
+        let (w_s, w_c) = self.mixture_weights();
+        let p_s = self.score_probabilities();
+        let p_c = self.staleness_probabilities();
+        p_s.iter()
+            .zip(&p_c)
+            .map(|(s, c)| w_s * s + w_c * c)
+            .collect()
     }
 
     /// Records a finished episode's return on its level and rescores it (spec 3.6); returns the
@@ -115,14 +225,18 @@ impl Forward {
             .ok_or(CurriculumError::UnknownLevel { level, count })?;
         l.returns.pop_front();
         l.returns.push_back(episode_return);
-        l.score = match self.config.forward_curriculum {
+        let score = match self.config.forward_curriculum {
             ForwardScore::SuccessOnceScore => success_once_score(
                 &l.returns,
                 self.config.score_window as usize,
                 self.config.score_threshold,
             ),
         };
-        Ok(l.score)
+        if score != l.score {
+            l.score = score;
+            self.score_cdf.0 = None;
+        }
+        Ok(score)
     }
 }
 
@@ -204,6 +318,53 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn the_cached_mixture_sampler_draws_from_the_spec_distribution() {
+        for mix in [LevelMix::Reference, LevelMix::Paper] {
+            let config = ForwardConfig {
+                num_seeds: 200,
+                include_demo_starts: false,
+                mix,
+                ..ForwardConfig::default()
+            };
+            let mut forward = Forward::new(config, &[]).unwrap();
+            let mut rng = ChaCha8Rng::seed_from_u64(3);
+            for step in 0..3000 {
+                let level = forward.sample(&mut rng);
+                let ret = if rng.random_bool(0.4) { 1.0 } else { 0.0 };
+                forward.report(level, ret).unwrap();
+                if step % 97 == 0 {
+                    let (a, b) = (forward.sampling_distribution(), forward.probabilities());
+                    let worst = a
+                        .iter()
+                        .zip(&b)
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0.0, f64::max);
+                    assert!(worst < 1e-12, "{mix:?} step {step}: {worst}");
+                }
+            }
+            // Frequencies follow the distribution: the first draws of a fresh curriculum are uniform.
+            let fresh = Forward::new(
+                ForwardConfig {
+                    num_seeds: 4,
+                    include_demo_starts: false,
+                    mix,
+                    ..ForwardConfig::default()
+                },
+                &[],
+            )
+            .unwrap();
+            let mut counts = [0u32; 4];
+            for _ in 0..4000 {
+                counts[fresh.clone().sample(&mut rng)] += 1;
+            }
+            assert!(
+                counts.iter().all(|&c| (900..1100).contains(&c)),
+                "{counts:?}"
+            );
+        }
+    }
 
     fn seeds_only(num_seeds: u32) -> ForwardConfig {
         ForwardConfig {

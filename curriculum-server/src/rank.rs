@@ -118,7 +118,11 @@ fn log_positive(v: f64) -> f64 {
 /// An index drawn from the probability vector `probs` (by inversion of one uniform draw). An index
 /// with probability 0 is never drawn.
 pub fn draw<R: Rng + ?Sized>(probs: &[f64], rng: &mut R) -> usize {
-    let u: f64 = rng.random();
+    draw_with(probs, rng.random())
+}
+
+/// [`draw`] with the uniform number `u` in [0, 1) given.
+pub fn draw_with(probs: &[f64], u: f64) -> usize {
     let mut cumulative = 0.0;
     for (index, &p) in probs.iter().enumerate() {
         cumulative += p;

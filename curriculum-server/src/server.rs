@@ -71,12 +71,15 @@ pub fn dashboard_router(shared: Shared) -> axum::Router {
         .with_state(shared)
 }
 
+/// Copies the state under the lock (cheap), then encodes and writes it outside the lock, so a
+/// snapshot never stalls Acquire/Report for longer than a clone.
 fn write_snapshot(shared: &Shared, run_dir: &std::path::Path) -> anyhow::Result<()> {
-    let bytes = {
+    let state = {
         let mut state = shared.lock();
         state.reports_since_snapshot = 0;
-        snapshot::encode(&state, &shared.cfg.name)
+        state.clone()
     };
+    let bytes = snapshot::encode(&state, &shared.cfg.name);
     snapshot::write(&snapshot::snapshot_path(run_dir), &bytes)?;
     Ok(())
 }
