@@ -1,8 +1,14 @@
 //! `rfcl`: the local launcher and tools for RFCL runs.
 //!
-//! `rfcl train` runs the curriculum server, the learner and the actors of one run on this machine;
-//! the other subcommands inspect and prepare what a run needs. Every subcommand that is not built
-//! yet says so and exits non-zero.
+//! `rfcl train` runs the curriculum server, the learner and the actors of one run on this machine
+//! ([`train`]); `rfcl eval` evaluates a run's exported policy ([`eval`]); the other subcommands
+//! inspect and prepare what a run needs. Every subcommand that is not built yet says so and exits
+//! non-zero.
+#![forbid(unsafe_code)]
+
+mod eval;
+mod train;
+
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -28,17 +34,26 @@ enum Command {
         config: PathBuf,
         /// Dotted overrides, e.g. `sac.batch_size=512`.
         overrides: Vec<String>,
-        /// Continue a stopped run from its directory.
-        #[arg(long, value_name = "RUN_DIR")]
+        /// Continue a stopped run from its directory (its stored config.yml, plus the overrides
+        /// given).
+        #[arg(long, value_name = "RUN_DIR", conflicts_with = "run_dir")]
         resume: Option<PathBuf>,
+        /// Run directory (default: runs/<name>, or runs/<name>-2, ... when that holds a run).
+        #[arg(long, value_name = "DIR")]
+        run_dir: Option<PathBuf>,
+        /// libtorch threads of the learner's SAC updates (default: all cores but one, which the
+        /// actors and the curriculum server on this machine need).
+        #[arg(long, value_name = "N")]
+        learner_threads: Option<u32>,
     },
     /// Demonstration datasets: generate, convert, inspect.
     Demos {
         #[command(subcommand)]
         command: DemosCommand,
     },
-    /// Evaluate a run's exported policy on held-out seeds.
+    /// Evaluate a run's exported policy on held-out seeds (deterministic policy).
     Eval {
+        /// A run directory with config.yml and policy.safetensors.
         run_dir: PathBuf,
         /// Episodes to run.
         #[arg(short = 'n', long, default_value_t = 100)]
@@ -105,13 +120,16 @@ enum ConfigCommand {
     },
 }
 
+/// The exit status of a training session stopped by Ctrl-C or SIGTERM (128 + SIGINT).
+const EXIT_INTERRUPTED: u8 = 130;
+
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
         .with_writer(std::io::stderr)
         .init();
     match run(Cli::parse()) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(code) => code,
         Err(err) => {
             eprintln!("error: {err:#}");
             ExitCode::FAILURE
@@ -119,29 +137,60 @@ fn main() -> ExitCode {
     }
 }
 
-fn run(cli: Cli) -> Result<()> {
+fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
+        Command::Train {
+            config,
+            overrides,
+            resume,
+            run_dir,
+            learner_threads,
+        } => {
+            let summary = train::train(train::TrainArgs {
+                config,
+                overrides,
+                resume,
+                run_dir,
+                learner_threads,
+            })?;
+            Ok(match summary.ending {
+                train::progress::Ending::Interrupted => ExitCode::from(EXIT_INTERRUPTED),
+                _ => ExitCode::SUCCESS,
+            })
+        }
+        Command::Eval { run_dir, episodes } => {
+            let report = eval::eval(&run_dir, episodes)?;
+            println!(
+                "{}: {} episodes from held-out seeds {}..: success {:.1}% at the end, {:.1}% \
+                 once, mean return {:.2}, mean length {:.0}",
+                report.env_id,
+                report.episodes,
+                report.first_seed,
+                100.0 * report.success_at_end,
+                100.0 * report.success_once,
+                report.mean_return,
+                report.mean_length
+            );
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Config { command: ConfigCommand::Show { file, overrides } } => {
             let cfg = rfcl_core::config::resolve_file(&file, &overrides)?;
             print!("{}", rfcl_core::config::to_yaml(&cfg));
-            Ok(())
+            Ok(ExitCode::SUCCESS)
         }
         Command::Demos { command: DemosCommand::Inspect { file } } => {
             let demos = rfcl_core::demo::DemoSet::load(&file)?;
             print!("{}", demos.summary());
-            Ok(())
+            Ok(ExitCode::SUCCESS)
         }
-        Command::Demos { command: DemosCommand::Generate { env, num, out, seed } } => generate_demos(&env, num, &out, seed),
+        Command::Demos { command: DemosCommand::Generate { env, num, out, seed } } => {
+            generate_demos(&env, num, &out, seed).map(|()| ExitCode::SUCCESS)
+        }
         Command::Demos { command: DemosCommand::Convert { input, .. } } => {
             bail!("`rfcl demos convert {}` is not built yet (issues 7 and 8)", input.display())
         }
-        Command::Train { config, .. } => {
-            rfcl_core::config::resolve_file(&config, &[]).context("checking the config")?;
-            bail!("`rfcl train` is not built yet (issue 6): the config resolves, but no run was started")
-        }
-        Command::Eval { run_dir, .. } => bail!("`rfcl eval {}` is not built yet (issue 6)", run_dir.display()),
         Command::Bench { target, clients, seconds, connect } => match target.as_str() {
-            "curriculum" => bench_curriculum(clients, seconds, connect),
+            "curriculum" => bench_curriculum(clients, seconds, connect).map(|()| ExitCode::SUCCESS),
             other => bail!("`rfcl bench {other}` is not built yet (learner: issue 5; actor, e2e: issue 6); available: curriculum"),
         },
     }

@@ -41,11 +41,13 @@ fn load(relative: &str) -> RunConfig {
     resolve_file(&path, &[]).unwrap_or_else(|e| panic!("{e}"))
 }
 
-/// The task presets (outside `configs/base/`) as (file, config).
+/// The task presets (outside `configs/base/`) as (file, config). `*_test.yml` files are not presets
+/// of spec 8 but small configs for the project's own whole-run tests (`configs/pointmaze_test.yml`);
+/// they still resolve, validate and round-trip like every file.
 fn task_presets() -> Vec<(String, RunConfig)> {
     preset_files()
         .into_iter()
-        .filter(|file| !file.starts_with("base"))
+        .filter(|file| !file.starts_with("base") && !file.to_string_lossy().ends_with("_test.yml"))
         .map(|file| {
             let name = file.to_str().unwrap().to_owned();
             let config = load(&name);

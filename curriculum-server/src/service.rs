@@ -211,9 +211,11 @@ impl ServerState {
                 demo_id: 0,
                 start_index: 0,
                 env_state: Vec::new(),
+                // `ResetArgs::default()` holds `{}`; `Value::default()` would be `null`, which
+                // is not an options object and fails the lease's wire conversion.
                 reset: ResetArgs {
                     seed: Some(seed),
-                    options: Default::default(),
+                    ..ResetArgs::default()
                 },
                 time_limit: cfg
                     .eval_env

@@ -1,14 +1,16 @@
 //! `cargo bench -p rfcl-learner`: SAC updates/s on CPU as JSON (see `rfcl_learner::bench`).
-//! Environment: `RFCL_BENCH_SECONDS` (time per schedule), `RFCL_BENCH_THREADS`,
-//! `RFCL_BENCH_SCHEDULES` (`G/F,...`), `RFCL_BENCH_PRECISION=bf16`.
+//! Environment: `RFCL_BENCH_SECONDS` (seconds per window), `RFCL_BENCH_WINDOWS` (best of N),
+//! `RFCL_BENCH_THREADS`, `RFCL_BENCH_SCHEDULES` (`G/F,...`), `RFCL_BENCH_PRECISION=bf16`.
 use rfcl_core::config::MatmulPrecision;
 use rfcl_learner::bench::{run, BenchConfig};
-use std::time::Duration;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut cfg = BenchConfig::default();
     if let Ok(seconds) = std::env::var("RFCL_BENCH_SECONDS") {
-        cfg.min_time = Duration::from_secs_f64(seconds.parse()?);
+        cfg.window_seconds = seconds.parse()?;
+    }
+    if let Ok(windows) = std::env::var("RFCL_BENCH_WINDOWS") {
+        cfg.windows = windows.parse()?;
     }
     if let Ok(threads) = std::env::var("RFCL_BENCH_THREADS") {
         cfg.threads = threads.parse()?;

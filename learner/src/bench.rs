@@ -30,8 +30,11 @@ pub struct BenchConfig {
     pub threads: i32,
     /// Untimed iterations before measuring, per schedule.
     pub warmup_iterations: u32,
-    /// Measure each schedule for at least this long.
-    pub min_time: Duration,
+    /// Timed windows per schedule; the best one is reported (the others are noise from whatever
+    /// else the machine runs).
+    pub windows: u32,
+    /// Each window lasts at least this many seconds.
+    pub window_seconds: f64,
     pub seed: u64,
 }
 
@@ -51,18 +54,20 @@ impl Default for BenchConfig {
             matmul_precision: MatmulPrecision::Fp32,
             threads: 2,
             warmup_iterations: 1,
-            min_time: Duration::from_secs(10),
+            windows: 3,
+            window_seconds: 5.0,
             seed: 0,
         }
     }
 }
 
-/// The measurement of one schedule.
+/// The measurement of one schedule: its best window.
 #[derive(Debug, Clone, Serialize)]
 pub struct ScheduleResult {
     pub schedule: String,
     pub grad_updates_per_step: u32,
     pub actor_update_freq: u32,
+    /// Iterations and seconds of the best window.
     pub iterations: u64,
     pub seconds: f64,
     /// Updates (critic update + 1/F actor update) per second.
@@ -76,6 +81,8 @@ pub struct ScheduleResult {
     pub gflop_per_s: f64,
     /// Seconds per iteration spent sampling and converting the batch (not in `seconds`).
     pub batch_seconds_per_iteration: f64,
+    /// `updates_per_s` of every window, in order.
+    pub window_updates_per_s: Vec<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -112,37 +119,52 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             let batch = random_batch(&mut rng, rows, cfg.obs_dim, cfg.action_dim);
             sac.train_iteration(&batch.to_tensors(sac.kind(), sac.device()))?;
         }
-        let (mut iterations, mut busy, mut batch_time) = (0u64, Duration::ZERO, Duration::ZERO);
-        while busy < cfg.min_time {
-            let start = Instant::now();
-            let batch = random_batch(&mut rng, rows, cfg.obs_dim, cfg.action_dim)
-                .to_tensors(sac.kind(), sac.device());
-            let prepared = Instant::now();
-            sac.train_iteration(&batch)?;
-            batch_time += prepared - start;
-            busy += prepared.elapsed();
-            iterations += 1;
-        }
         let flops = Flops::new(cfg, &net);
-        let seconds = busy.as_secs_f64();
-        let critic_updates = (iterations * u64::from(g)) as f64;
-        let actor_updates = (iterations * u64::from(g / f)) as f64;
         let flop_per_update = flops.critic_update + flops.actor_update / f64::from(f);
-        results.push(ScheduleResult {
-            schedule: format!("G{g}/F{f}"),
-            grad_updates_per_step: g,
-            actor_update_freq: f,
-            iterations,
-            seconds,
-            updates_per_s: critic_updates / seconds,
-            critic_updates_per_s: critic_updates / seconds,
-            actor_updates_per_s: actor_updates / seconds,
-            flop_per_update,
-            flop_per_critic_update: flops.critic_update,
-            flop_per_actor_update: flops.actor_update,
-            gflop_per_s: critic_updates * flop_per_update / seconds / 1e9,
-            batch_seconds_per_iteration: batch_time.as_secs_f64() / iterations as f64,
-        });
+        let mut best: Option<ScheduleResult> = None;
+        let mut window_rates = Vec::new();
+        for _ in 0..cfg.windows.max(1) {
+            let (mut iterations, mut busy, mut batch_time) = (0u64, Duration::ZERO, Duration::ZERO);
+            while busy.as_secs_f64() < cfg.window_seconds {
+                let start = Instant::now();
+                let batch = random_batch(&mut rng, rows, cfg.obs_dim, cfg.action_dim)
+                    .to_tensors(sac.kind(), sac.device());
+                let prepared = Instant::now();
+                sac.train_iteration(&batch)?;
+                batch_time += prepared - start;
+                busy += prepared.elapsed();
+                iterations += 1;
+            }
+            let seconds = busy.as_secs_f64();
+            let critic_updates = (iterations * u64::from(g)) as f64;
+            let actor_updates = (iterations * u64::from(g / f)) as f64;
+            let window = ScheduleResult {
+                schedule: format!("G{g}/F{f}"),
+                grad_updates_per_step: g,
+                actor_update_freq: f,
+                iterations,
+                seconds,
+                updates_per_s: critic_updates / seconds,
+                critic_updates_per_s: critic_updates / seconds,
+                actor_updates_per_s: actor_updates / seconds,
+                flop_per_update,
+                flop_per_critic_update: flops.critic_update,
+                flop_per_actor_update: flops.actor_update,
+                gflop_per_s: critic_updates * flop_per_update / seconds / 1e9,
+                batch_seconds_per_iteration: batch_time.as_secs_f64() / iterations as f64,
+                window_updates_per_s: Vec::new(),
+            };
+            window_rates.push(window.updates_per_s);
+            if best
+                .as_ref()
+                .is_none_or(|b| window.updates_per_s > b.updates_per_s)
+            {
+                best = Some(window);
+            }
+        }
+        let mut best = best.expect("at least one window");
+        best.window_updates_per_s = window_rates;
+        results.push(best);
     }
     Ok(BenchReport {
         config: cfg.clone(),
@@ -265,7 +287,8 @@ mod tests {
             target_pool: 3,
             schedules: vec![(4, 2), (2, 1)],
             threads: 1,
-            min_time: Duration::from_millis(20),
+            windows: 2,
+            window_seconds: 0.02,
             ..BenchConfig::default()
         };
         let report = run(&cfg).unwrap();
@@ -273,6 +296,8 @@ mod tests {
         assert_eq!(names, ["G4/F2", "G2/F1"]);
         for r in &report.results {
             assert!(r.iterations >= 1 && r.seconds >= 0.02);
+            assert_eq!(r.window_updates_per_s.len(), 2);
+            assert!(r.window_updates_per_s.iter().all(|&w| w <= r.updates_per_s));
             let per_update = r.seconds / (r.iterations as f64 * f64::from(r.grad_updates_per_step));
             assert!((r.updates_per_s * per_update - 1.0).abs() < 1e-9);
             assert_eq!(

@@ -14,11 +14,19 @@
 pub mod adam;
 pub mod batch;
 pub mod bench;
+pub mod checkpoint;
 pub mod error;
+pub mod ingest;
+pub mod limiter;
+pub mod metrics;
 pub mod nets;
+pub mod policy;
 pub mod replay;
 pub mod runtime;
 pub mod sac;
+pub mod service;
+pub mod stages;
+pub mod trainer;
 
 pub use batch::{Batch, HostBatch};
 pub use error::{LearnerError, Result};

@@ -1,10 +1,32 @@
-//! `learner`: ensemble SAC on libtorch with replay, transition ingest (shared memory and gRPC),
-//! policy publication and checkpoints. The service is not built yet (issue 5): the library holds
-//! the SAC maths and the replay buffers.
-use std::path::PathBuf;
+//! `learner`: ensemble SAC on libtorch with replay, gRPC transition ingest, policy publication,
+//! stage transitions and checkpoints (ARCHITECTURE "learner", issue 5).
+//!
+//! ```text
+//! learner --config CFG [key=value ...] --curriculum http://ADDR [--demos FILE] [--run-dir DIR]
+//!         [--port P] [--bind 127.0.0.1] [--resume RUN_DIR] [--device cpu|cuda] [--threads N]
+//! ```
+//!
+//! On start it loads the config and the demos (spec 6.1 selection), subscribes to the curriculum
+//! server's stage announcements, builds the agent and the buffers (or restores them with
+//! `--resume`), binds gRPC and prints exactly one line on stdout:
+//! `learner ready grpc=127.0.0.1:PORT`. Logs go to stderr. It stops after `train.steps` env steps,
+//! when the curriculum server ends the run, or on SIGINT/SIGTERM, each time with a final
+//! checkpoint and the exported policy (exit 0); a failure exits non-zero with a one-line error.
+use std::net::{IpAddr, SocketAddr};
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::time::Duration;
 
+use anyhow::{bail, Context, Result};
 use clap::Parser;
+use rfcl_core::config::{Device, RunConfig};
+use rfcl_core::demo::DemoSet;
+use rfcl_learner::checkpoint::{self, Manifest};
+use rfcl_learner::service::{self, LearnerService, RunDescription};
+use rfcl_learner::stages;
+use rfcl_learner::trainer::{StopReason, Trainer, TrainerInputs};
+use tokio::net::TcpListener;
+use tokio::sync::{mpsc, oneshot, watch};
 
 #[derive(Parser)]
 #[command(
@@ -13,28 +35,334 @@ use clap::Parser;
     about = "RFCL learner: ensemble SAC on libtorch, replay, ingest, policy publication"
 )]
 struct Args {
-    /// gRPC port for actors (0 = a free one, printed on stdout).
-    #[arg(long, default_value_t = 0)]
-    port: u16,
-    /// Run config (YAML).
-    #[arg(long)]
+    /// Run config (YAML). With --resume, defaults to the config the checkpoint was written under.
+    #[arg(long, required_unless_present = "resume")]
     config: Option<PathBuf>,
     /// Curriculum server address, e.g. http://127.0.0.1:50051.
     #[arg(long)]
-    curriculum: Option<String>,
-    /// Where the SAC updates run: cpu or cuda.
-    #[arg(long, default_value = "cpu")]
-    device: String,
-    /// Continue from the checkpoint in this run directory.
+    curriculum: String,
+    /// Demo file (ManiSkill-format .h5 with its .json sidecar); default: train.dataset_path.
+    #[arg(long)]
+    demos: Option<PathBuf>,
+    /// Run directory (checkpoints, metrics.csv, exported policy); default `runs/<name>`.
     #[arg(long, value_name = "RUN_DIR")]
+    run_dir: Option<PathBuf>,
+    /// Continue from the checkpoint in this run directory.
+    #[arg(long, value_name = "RUN_DIR", conflicts_with = "run_dir")]
     resume: Option<PathBuf>,
+    /// gRPC port for actors (0 = a free one; the address is printed on stdout).
+    #[arg(long, default_value_t = 0)]
+    port: u16,
+    /// Address to bind the gRPC port on.
+    #[arg(long, default_value = "127.0.0.1")]
+    bind: IpAddr,
+    /// Where the SAC updates run (overrides sac.device).
+    #[arg(long, value_parser = ["cpu", "cuda"])]
+    device: Option<String>,
+    /// libtorch CPU threads for the SAC maths (default: all cores).
+    #[arg(long)]
+    threads: Option<i32>,
+    /// Capacity of the ingest queue, in transition batches (bounded: back-pressure beyond it).
+    #[arg(long, default_value_t = 8)]
+    queue_batches: usize,
+    /// Seconds to wait for the curriculum server at start.
+    #[arg(long, default_value_t = 10.0)]
+    connect_timeout_s: f64,
+    /// Dotted config overrides, e.g. `sac.batch_size=128`.
+    overrides: Vec<String>,
 }
 
 fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
     let args = Args::parse();
-    eprintln!(
-        "error: the learner service is not built yet (issue 5); asked to listen on port {}",
-        args.port
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: starting the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(args)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(args: Args) -> Result<()> {
+    // Installed first: a signal during start-up is handled, not fatal.
+    let mut signals = Signals::install()?;
+    let manifest = match &args.resume {
+        Some(dir) => Some(
+            checkpoint::read_manifest(&checkpoint::checkpoint_dir(dir))?.with_context(|| {
+                format!(
+                    "--resume {}: no learner checkpoint in {}",
+                    dir.display(),
+                    checkpoint::checkpoint_dir(dir).display()
+                )
+            })?,
+        ),
+        None => None,
+    };
+    let cfg = load_config(&args, manifest.as_ref())?;
+    let demos = load_demos(&args, &cfg)?;
+
+    let run_dir = args
+        .resume
+        .clone()
+        .or(args.run_dir.clone())
+        .unwrap_or_else(|| PathBuf::from("runs").join(&cfg.name));
+    std::fs::create_dir_all(&run_dir)
+        .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
+    let ckpt_dir = checkpoint::checkpoint_dir(&run_dir);
+    if manifest.is_none() && checkpoint::read_manifest(&ckpt_dir)?.is_some() {
+        bail!(
+            "{} already holds a learner checkpoint: pass --resume {} to continue it, or choose another --run-dir",
+            run_dir.display(),
+            run_dir.display()
+        );
+    }
+    if cfg.sac.device == Device::Cpu {
+        let threads = args
+            .threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get() as i32));
+        let applied = rfcl_learner::runtime::configure_cpu(threads);
+        tracing::info!(threads = applied.threads, "SAC updates on the CPU");
+    }
+
+    let timeout = Duration::from_secs_f64(args.connect_timeout_s.max(0.1));
+    let (stage_stream, first_stage) = stages::open(&args.curriculum, timeout)
+        .await
+        .context("subscribing to the curriculum server's stage announcements")?;
+    tracing::info!(
+        stage = first_stage.stage,
+        epoch = first_stage.stage_epoch,
+        "curriculum server at {}",
+        args.curriculum
     );
-    ExitCode::FAILURE
+
+    let (trainer, policy_rx, status) = match &manifest {
+        Some(m) => {
+            if first_stage.stage_epoch < m.progress.stage_epoch {
+                bail!(
+                    "the curriculum server is at stage epoch {} but the learner checkpoint at {}: resume the curriculum server from the same run directory",
+                    first_stage.stage_epoch,
+                    m.progress.stage_epoch
+                );
+            }
+            let resumed = Trainer::resume(cfg.clone(), &demos, run_dir.clone(), m)
+                .with_context(|| format!("resuming from {}", ckpt_dir.display()))?;
+            tracing::info!(
+                env_steps = m.progress.env_steps,
+                critic_updates = m.progress.critic_updates,
+                policy_version = m.progress.policy_version,
+                online = m.online.len,
+                "resumed from checkpoint generation {} in {}",
+                m.generation,
+                ckpt_dir.display()
+            );
+            resumed
+        }
+        None => {
+            if first_stage.stage_epoch > 0 && !cfg.train.stage_2_only {
+                tracing::warn!(
+                    "the curriculum server is already at stage epoch {}: a fresh learner starts there with the demos as its offline buffer",
+                    first_stage.stage_epoch
+                );
+            }
+            Trainer::fresh(cfg.clone(), &demos, run_dir.clone(), &first_stage)
+                .context("building the agent and the replay")?
+        }
+    };
+
+    let listener = TcpListener::bind(SocketAddr::new(args.bind, args.port))
+        .await
+        .with_context(|| format!("binding the gRPC port {}:{}", args.bind, args.port))?;
+    let addr = listener.local_addr().context("reading the bound address")?;
+    let layout = trainer.layout();
+    let info = RunDescription {
+        run_name: cfg.name.clone(),
+        env_id: trainer.env_id().to_string(),
+        obs_dim: layout.obs_dim as u32,
+        action_dim: layout.action_dim as u32,
+        curriculum_addr: args.curriculum.clone(),
+        transport: "grpc".into(),
+        config_yaml: trainer.config_yaml().to_string(),
+        run_seed: cfg.seed,
+        learner_hostname: hostname(),
+    };
+
+    let (data_tx, data_rx) = mpsc::channel(args.queue_batches.max(1));
+    let (stage_tx, stage_rx) = mpsc::unbounded_channel();
+    let (shutdown_tx, shutdown_rx) = watch::channel(false);
+    let (stopping_tx, stopping_rx) = watch::channel(false);
+    let service = LearnerService::new(
+        info,
+        status.clone(),
+        data_tx,
+        policy_rx,
+        stopping_rx.clone(),
+    );
+
+    // The one machine-readable line on stdout: `rfcl train` and tests read the address from it.
+    println!("learner ready grpc={addr}");
+
+    tokio::spawn(stages::follow(
+        args.curriculum.clone(),
+        stage_stream,
+        stage_tx,
+        stopping_rx.clone(),
+    ));
+    let inputs = TrainerInputs {
+        data: data_rx,
+        stages: stage_rx,
+        shutdown: shutdown_rx,
+        runtime: tokio::runtime::Handle::current(),
+    };
+    let (done_tx, mut done_rx) = oneshot::channel();
+    std::thread::Builder::new()
+        .name("trainer".into())
+        .spawn(move || {
+            let _ = done_tx.send(trainer.run(inputs, first_stage));
+        })
+        .context("starting the training thread")?;
+    let mut stopped = stopping_rx.clone();
+    let server = tokio::spawn(service::serve(listener, service, async move {
+        let _ = stopped.wait_for(|s| *s).await;
+    }));
+
+    let outcome = tokio::select! {
+        done = &mut done_rx => done,
+        _ = signals.recv() => {
+            tracing::info!("signal received: finishing (final checkpoint); signal again to abort");
+            let _ = shutdown_tx.send(true);
+            tokio::select! {
+                done = &mut done_rx => done,
+                _ = signals.recv() => bail!("aborted by a second signal before the final checkpoint"),
+            }
+        }
+    };
+    let _ = stopping_tx.send(true);
+    match tokio::time::timeout(Duration::from_secs(5), server).await {
+        Ok(Ok(Ok(()))) => {}
+        Ok(Ok(Err(e))) => tracing::warn!("gRPC server: {e}"),
+        Ok(Err(e)) => tracing::warn!("gRPC server task: {e}"),
+        Err(_) => tracing::warn!("gRPC server did not stop within 5 s"),
+    }
+    match outcome {
+        Ok(Ok(reason)) => {
+            let why = match reason {
+                StopReason::Budget => "train.steps reached",
+                StopReason::Signal => "stopped by a signal",
+                StopReason::CurriculumFinished => "the curriculum server ended the run",
+                StopReason::InputsClosed => "the ingest queue closed",
+            };
+            tracing::info!("learner done: {why}");
+            Ok(())
+        }
+        Ok(Err(e)) => Err(e).context("training"),
+        Err(_) => bail!("the training thread panicked"),
+    }
+}
+
+/// The run config: `--config` with the overrides, or (resuming without `--config`) the config the
+/// checkpoint was written under. `--device` overrides `sac.device`.
+fn load_config(args: &Args, manifest: Option<&Manifest>) -> Result<RunConfig> {
+    let mut cfg = match (&args.config, manifest, &args.resume) {
+        (Some(path), _, _) => rfcl_core::config::resolve_file(path, &args.overrides)
+            .with_context(|| format!("loading the config {}", path.display()))?,
+        (None, Some(m), Some(dir)) => {
+            let path = checkpoint::checkpoint_dir(dir).join("config.yml");
+            rfcl_core::atomic::atomic_write(&path, m.config_yaml.as_bytes())
+                .with_context(|| format!("writing {}", path.display()))?;
+            rfcl_core::config::resolve_file(&path, &args.overrides)
+                .with_context(|| format!("loading the checkpoint's config {}", path.display()))?
+        }
+        _ => bail!("--config is required"),
+    };
+    if let Some(m) = manifest {
+        if rfcl_core::config::to_yaml(&cfg) != m.config_yaml {
+            tracing::warn!(
+                "the config differs from the one the checkpoint was written under; resuming with the new one"
+            );
+        }
+    }
+    match args.device.as_deref() {
+        Some("cpu") => cfg.sac.device = Device::Cpu,
+        Some("cuda") => cfg.sac.device = Device::Cuda,
+        _ => {}
+    }
+    Ok(cfg)
+}
+
+/// Demo selection (spec 6.1) and the dims check against `env.obs_dim` / `env.action_dim`.
+fn load_demos(args: &Args, cfg: &RunConfig) -> Result<DemoSet> {
+    let path = match (&args.demos, &cfg.train.dataset_path) {
+        (Some(p), _) => p.clone(),
+        (None, Some(p)) => PathBuf::from(p),
+        (None, None) => bail!("no demos: pass --demos FILE or set train.dataset_path"),
+    };
+    let all = DemoSet::load(&path).with_context(|| format!("loading demos {}", path.display()))?;
+    let demos = all
+        .select(
+            cfg.train.num_demos as usize,
+            cfg.train.shuffle_demos,
+            cfg.demo_seed.unwrap_or(cfg.seed),
+        )
+        .with_context(|| format!("selecting demos from {}", path.display()))?;
+    demos.check_dims(
+        cfg.env.obs_dim.map(|d| d as usize),
+        cfg.env.action_dim.map(|d| d as usize),
+    )?;
+    tracing::info!(
+        demos = demos.demos.len(),
+        obs_dim = demos.obs_dim,
+        action_dim = demos.action_dim,
+        "demos from {}",
+        path.display()
+    );
+    Ok(demos)
+}
+
+fn hostname() -> String {
+    std::fs::read_to_string(Path::new("/proc/sys/kernel/hostname"))
+        .map(|s| s.trim().to_string())
+        .ok()
+        .filter(|s| !s.is_empty())
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .unwrap_or_else(|| "localhost".into())
+}
+
+/// SIGINT and SIGTERM.
+struct Signals {
+    int: tokio::signal::unix::Signal,
+    term: tokio::signal::unix::Signal,
+}
+
+impl Signals {
+    fn install() -> Result<Self> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(Self {
+            int: signal(SignalKind::interrupt()).context("installing the SIGINT handler")?,
+            term: signal(SignalKind::terminate()).context("installing the SIGTERM handler")?,
+        })
+    }
+
+    async fn recv(&mut self) {
+        tokio::select! {
+            _ = self.int.recv() => {}
+            _ = self.term.recv() => {}
+        }
+    }
 }

@@ -3,9 +3,9 @@
 //! the stage transition.
 //!
 //! A buffer is a preallocated ring with one flat `f32` storage per field. The reference keeps one
-//! ring per env written in lockstep and samples (time slot, env) pairs uniformly; with actors
-//! reporting asynchronously (deviation 4) one ring over all envs gives the same uniform
-//! distribution over stored transitions.
+//! ring of ceil(C / num_envs) slots per env, written in lockstep, and samples (time slot, env)
+//! pairs uniformly; with actors reporting asynchronously (deviation 4) one ring of C slots over all
+//! envs gives the same uniform distribution over the stored transitions.
 use crate::batch::HostBatch;
 use crate::error::{LearnerError, Result};
 use rand::{Rng, SeedableRng};
@@ -345,4 +345,53 @@ pub fn offline_from_demos(demos: &[Demo], action_scale: Option<&[f32]>) -> Resul
         buffer.push_demo(demo, action_scale)?;
     }
     Ok(buffer)
+}
+
+/// Checkpoint access (added for the learner service, issue 5; additive only): the ring's raw
+/// storage and position, so a checkpoint can store a buffer and restore it exactly (spec 4.1,
+/// ARCHITECTURE "Resume that comes back empty").
+impl ReplayBuffer {
+    /// The slot the next push writes; with [`len`](Self::len), the ring's whole position.
+    pub fn cursor(&self) -> usize {
+        self.cursor
+    }
+
+    /// The storage, `capacity` rows per field, in the order obs, action, reward, mask, next_obs.
+    pub fn storage(&self) -> [&[f32]; 5] {
+        [
+            &self.obs,
+            &self.action,
+            &self.reward,
+            &self.mask,
+            &self.next_obs,
+        ]
+    }
+
+    /// Sets the ring's position and hands out its storage (same order as
+    /// [`storage`](Self::storage)) for the caller to fill: a checkpoint restore.
+    pub fn restore_storage(&mut self, len: usize, cursor: usize) -> Result<[&mut [f32]; 5]> {
+        if len > self.capacity || cursor >= self.capacity || (len < self.capacity && cursor != len)
+        {
+            return Err(LearnerError::Shape(format!(
+                "{} replay buffer of capacity {}: cannot restore len {len} with cursor {cursor}",
+                self.name, self.capacity
+            )));
+        }
+        self.len = len;
+        self.cursor = cursor;
+        Ok([
+            &mut self.obs,
+            &mut self.action,
+            &mut self.reward,
+            &mut self.mask,
+            &mut self.next_obs,
+        ])
+    }
+}
+
+impl Replay {
+    /// Restores the sampling RNG (checkpoint resume).
+    pub fn set_rng(&mut self, rng: ChaCha8Rng) {
+        self.rng = rng;
+    }
 }

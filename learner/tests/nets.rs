@@ -98,13 +98,9 @@ fn agent_init_follows_spec_5_1() {
         }
     }
 
-    // Critic: each member's first-layer block [14, 256] has orthonormal rows, members differ.
-    let w = values(&critic["input.kernel"]);
-    let block = |e: usize| -> Vec<f64> {
-        (0..14)
-            .flat_map(|i| w[i * 3 * 256 + e * 256..i * 3 * 256 + (e + 1) * 256].to_vec())
-            .collect()
-    };
+    // Critic: each member's first layer [14, 256] has orthonormal rows, members differ.
+    let w = values(&critic["hidden0.kernel"]);
+    let block = |e: usize| w[e * 14 * 256..(e + 1) * 14 * 256].to_vec();
     for e in 0..3 {
         assert!(row_gram_error(&block(e), 14, 256, sqrt2) < 1e-9);
     }

@@ -476,3 +476,12 @@ fn impossible_configs_are_refused() {
     }
     assert!(Sac::new(OBS, ACT, &cfg, &net, 0).is_ok());
 }
+
+/// The learner moves the agent and the replay into its training thread.
+#[test]
+fn agent_and_replay_are_send() {
+    fn assert_send<T: Send>() {}
+    assert_send::<Sac>();
+    assert_send::<rfcl_learner::Replay>();
+    assert_send::<Batch>();
+}

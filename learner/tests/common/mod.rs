@@ -154,25 +154,8 @@ pub struct NaiveCritic {
 
 impl NaiveCritic {
     /// Member `e` of the ensemble stored in `vs`.
-    pub fn member(vs: &nn::VarStore, net: &NetworkConfig, members: usize, e: usize) -> Self {
+    pub fn member(vs: &nn::VarStore, net: &NetworkConfig, e: usize) -> Self {
         let v = vars(vs);
-        let w_in = &v["input.kernel"];
-        let fan_in = w_in.size()[0] as usize;
-        let width = net.critic_features[0] as usize;
-        let w_all = values(w_in);
-        let b_all = values(&v["input.bias"]);
-        let mut w = Vec::new();
-        for i in 0..fan_in {
-            w.extend_from_slice(
-                &w_all[i * members * width + e * width..i * members * width + (e + 1) * width],
-            );
-        }
-        let mut layers = vec![NaiveDense {
-            w,
-            b: b_all[e * width..(e + 1) * width].to_vec(),
-            fan_in,
-            fan_out: width,
-        }];
         let stacked = |name: &str| {
             let w = &v[&format!("{name}.kernel")];
             let size = w.size();
@@ -184,9 +167,9 @@ impl NaiveCritic {
                 fan_out: fo,
             }
         };
-        for l in 1..net.critic_features.len() {
-            layers.push(stacked(&format!("hidden{l}")));
-        }
+        let layers = (0..net.critic_features.len())
+            .map(|l| stacked(&format!("hidden{l}")))
+            .collect();
         let norms = if net.critic_layer_norm {
             net.critic_features
                 .iter()
@@ -232,6 +215,6 @@ impl NaiveCritic {
 
 pub fn naive_critics(vs: &nn::VarStore, net: &NetworkConfig, members: usize) -> Vec<NaiveCritic> {
     (0..members)
-        .map(|e| NaiveCritic::member(vs, net, members, e))
+        .map(|e| NaiveCritic::member(vs, net, e))
         .collect()
 }

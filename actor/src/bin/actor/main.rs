@@ -1,0 +1,103 @@
+//! `actor`: steps simulator envs with the latest policy, resets them from curriculum leases and
+//! streams transitions to the learner (ARCHITECTURE.md, "Processes").
+//!
+//! It asks the learner for the run (GetRunInfo: env, dims, curriculum address, resolved config,
+//! run seed), makes `--envs` envs, watches the learner's policies, and then either trains
+//! (Acquire → reset → step until the lease's time limit → transitions over PushTransitions, a
+//! Report per episode) or, with `--eval`, evaluates each policy that passes a multiple of
+//! `sac.eval_freq` with the deterministic policy on EVAL leases (spec 5.7). Lost connections are
+//! retried with backoff for `--retry-for` seconds; after that the actor exits non-zero.
+mod links;
+mod service;
+
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::Parser;
+
+#[derive(Parser)]
+#[command(
+    name = "actor",
+    version,
+    about = "RFCL actor: steps envs with the latest policy and streams transitions to the learner"
+)]
+struct Args {
+    /// Learner address, e.g. http://127.0.0.1:50051 (the curriculum server's comes from it).
+    #[arg(long, value_name = "ADDR")]
+    connect: String,
+    /// Run the deterministic policy on held-out seeds and report eval outcomes (spec 5.7).
+    #[arg(long)]
+    eval: bool,
+    /// Environments stepped by this actor, in lockstep.
+    #[arg(long, default_value_t = 4)]
+    envs: u32,
+    /// Actor id (seeds derive from the run seed, the actor id and the env index).
+    #[arg(long, default_value_t = 0)]
+    id: u32,
+    /// Seconds a lost learner or curriculum server is retried before the actor gives up.
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+    retry_for: f64,
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    if !(args.retry_for.is_finite() && args.retry_for > 0.0) {
+        eprintln!(
+            "error: --retry-for must be a positive number of seconds, got {}",
+            args.retry_for
+        );
+        return ExitCode::FAILURE;
+    }
+    rfcl_actor::net::configure_inference_threads();
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: starting the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let opts = service::Options {
+        connect: args.connect,
+        eval: args.eval,
+        envs: args.envs,
+        id: args.id,
+        retry_for: Duration::from_secs_f64(args.retry_for),
+    };
+    let id = opts.id;
+    match runtime.block_on(service::run(opts, shutdown_signal())) {
+        Ok(stopped) => {
+            tracing::info!(actor = id, "stopped: {stopped:?}");
+            ExitCode::SUCCESS
+        }
+        Err(err) => {
+            eprintln!("error: actor {id}: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// SIGINT or SIGTERM.
+async fn shutdown_signal() {
+    use tokio::signal::unix::{signal, SignalKind};
+    match signal(SignalKind::terminate()) {
+        Ok(mut term) => {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+        }
+        Err(e) => {
+            tracing::warn!("no SIGTERM handler ({e}); stopping on SIGINT only");
+            let _ = tokio::signal::ctrl_c().await;
+        }
+    }
+}

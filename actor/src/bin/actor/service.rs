@@ -1,0 +1,433 @@
+//! The actor's loops: the thin shell that feeds leases and policies into a [`Rollout`] and ships
+//! what it produces (transition batches to the learner, episode reports to the curriculum server).
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use rfcl_actor::eval::{episodes_per_eval_actor, EvalSchedule};
+use rfcl_actor::net::policy_from_weights;
+use rfcl_actor::policy::PolicyHandle;
+use rfcl_actor::rollout::{derive_seed, Rollout, RolloutSettings, StepOutput};
+use rfcl_actor::suite::make_env;
+use rfcl_core::config::RunConfig;
+use rfcl_core::lease::{AcquireRequest, EpisodeReport};
+use rfcl_core::transition::{RecordLayout, Transition};
+use rfcl_proto::v1;
+use tokio::sync::{mpsc, watch};
+
+use crate::links::{Curriculum, Learner, PushCounters, Reported};
+
+/// What the actor was asked to do.
+#[derive(Debug, Clone)]
+pub struct Options {
+    pub connect: String,
+    pub eval: bool,
+    pub envs: u32,
+    pub id: u32,
+    pub retry_for: Duration,
+}
+
+/// Why the actor stopped without an error.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stopped {
+    /// SIGINT / SIGTERM.
+    Signal,
+    /// The curriculum server hands out no more leases (stage 1 only, spec 2.7).
+    CurriculumFinished,
+}
+
+/// The run as the learner describes it, with the env resolved.
+struct Run {
+    cfg: RunConfig,
+    obs_dim: usize,
+    action_dim: usize,
+    run_seed: u64,
+    curriculum: Curriculum,
+}
+
+/// Connects, then runs the train or eval loop until `shutdown` resolves or an error.
+pub async fn run(
+    opts: Options,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<Stopped> {
+    if opts.envs == 0 {
+        bail!("--envs must be at least 1");
+    }
+    let learner = Learner::new(&opts.connect, opts.retry_for)?;
+    let info = learner.run_info(opts.id).await?;
+    let cfg = parse_config(&info.config_yaml)
+        .with_context(|| format!("the run config sent by the {}", learner.peer))?;
+    match info.transport.as_str() {
+        "grpc" | "" => {}
+        other => bail!(
+            "the {} offers transport '{other}'; this actor speaks grpc only (shared memory comes \
+             with a later issue)",
+            learner.peer
+        ),
+    }
+    if cfg.train.data_action_scale.is_some() {
+        bail!(
+            "the run sets train.data_action_scale (spec 6.4); this actor cannot apply the learner's \
+             per-dimension action scale yet"
+        );
+    }
+    if cfg.env.env_id != info.env_id {
+        bail!(
+            "the {} runs env '{}' but its config says '{}'",
+            learner.peer,
+            info.env_id,
+            cfg.env.env_id
+        );
+    }
+    let run = Run {
+        obs_dim: info.obs_dim as usize,
+        action_dim: info.action_dim as usize,
+        run_seed: info.run_seed,
+        curriculum: Curriculum::new(&info.curriculum_addr, opts.retry_for)?,
+        cfg,
+    };
+    let envs = (0..opts.envs)
+        .map(|i| {
+            make_env(
+                &run.cfg.env,
+                derive_seed(run.run_seed, opts.id, i),
+                run.obs_dim,
+                run.action_dim,
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let rollout = Rollout::new(
+        envs,
+        run.run_seed,
+        RolloutSettings {
+            actor_id: opts.id,
+            num_seed_steps: run.cfg.sac.num_seed_steps,
+            deterministic: opts.eval,
+        },
+    );
+    tracing::info!(
+        actor = opts.id,
+        eval = opts.eval,
+        envs = opts.envs,
+        env = %info.env_id,
+        run = %info.run_name,
+        "connected to the {} and the curriculum server at {}",
+        learner.peer,
+        info.curriculum_addr
+    );
+
+    let (policy_tx, policy_rx) = watch::channel(None);
+    let watcher = {
+        let learner = learner.clone();
+        async move { learner.watch_policy(policy_tx).await }
+    };
+    tokio::pin!(watcher);
+    tokio::pin!(shutdown);
+    if opts.eval {
+        let work = eval_loop(&run, rollout, policy_rx);
+        tokio::select! {
+            r = work => r,
+            r = &mut watcher => Err(r.err().unwrap_or_else(|| anyhow::anyhow!("the policy watch ended"))),
+            _ = &mut shutdown => Ok(Stopped::Signal),
+        }
+    } else {
+        let counters = Arc::new(PushCounters::default());
+        // Small: with the push stream's acknowledged windows, this bounds how far the actor runs
+        // ahead of the learner (policy lag).
+        let capacity = 1;
+        let (batch_tx, batch_rx) = mpsc::channel(capacity);
+        let pusher = {
+            let learner = learner.clone();
+            let counters = counters.clone();
+            tokio::spawn(async move { learner.push_transitions(batch_rx, counters).await })
+        };
+        let mut train = TrainLoop {
+            run: &run,
+            rollout,
+            policy_rx,
+            batch_tx,
+            pending: Vec::new(),
+            layout: RecordLayout::new(run.obs_dim, run.action_dim),
+            batch: run.cfg.service.transition_batch.max(1) as usize,
+            refused: 0,
+            policy: None,
+        };
+        let stopped = {
+            let work = train.run();
+            tokio::pin!(work);
+            tokio::select! {
+                r = &mut work => r,
+                r = &mut watcher => Err(r.err().unwrap_or_else(|| anyhow::anyhow!("the policy watch ended"))),
+                _ = &mut shutdown => Ok(Stopped::Signal),
+            }
+        };
+        // Flush what is ready (best effort, bounded) and account for the rest.
+        let unsent = train.pending.len();
+        drop(train.batch_tx);
+        let flushed = match stopped {
+            Ok(_) => tokio::time::timeout(Duration::from_secs(3), pusher)
+                .await
+                .is_ok(),
+            Err(_) => {
+                pusher.abort();
+                false
+            }
+        };
+        tracing::info!(
+            env_steps = train.rollout.env_steps(),
+            episodes = train.rollout.episodes(),
+            sent = counters.sent.load(Ordering::Relaxed),
+            accepted = counters.accepted.load(Ordering::Relaxed),
+            unconfirmed = counters.unconfirmed.load(Ordering::Relaxed),
+            dropped_stale_epoch = counters.dropped_stale_epoch.load(Ordering::Relaxed),
+            unsent_partial_batch = unsent,
+            abandoned_episodes = train.rollout.abandoned(),
+            refused_reports = train.refused,
+            flushed,
+            "actor stopping"
+        );
+        stopped
+    }
+}
+
+/// The resolved run config the learner sends (`to_yaml` output), validated.
+fn parse_config(yaml: &str) -> Result<RunConfig> {
+    if yaml.trim().is_empty() {
+        bail!("it is empty");
+    }
+    let cfg: RunConfig = serde_saphyr::from_str(yaml).context("it is not a valid run config")?;
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+/// Brings `current` to the newest published policy: new weights are loaded in place (the network
+/// is built once, from the run's config and dims).
+fn refresh_policy(
+    rx: &mut watch::Receiver<Option<Arc<v1::PolicyWeights>>>,
+    run: &Run,
+    current: &mut Option<PolicyHandle>,
+) -> Result<()> {
+    let Some(weights) = rx.borrow_and_update().clone() else {
+        return Ok(());
+    };
+    let context = || format!("loading policy version {}", weights.version);
+    match current {
+        Some(handle) => {
+            handle
+                .policy
+                .load(&weights.safetensors)
+                .map_err(|e| anyhow::anyhow!(e))
+                .with_context(context)?;
+            handle.version = weights.version;
+            handle.env_steps = weights.learner_env_steps;
+        }
+        None => {
+            let policy =
+                policy_from_weights(&weights.safetensors, &run.cfg, run.obs_dim, run.action_dim)
+                    .with_context(context)?;
+            *current = Some(PolicyHandle {
+                version: weights.version,
+                env_steps: weights.learner_env_steps,
+                policy,
+            });
+        }
+    }
+    Ok(())
+}
+
+struct TrainLoop<'a> {
+    run: &'a Run,
+    rollout: Rollout,
+    policy_rx: watch::Receiver<Option<Arc<v1::PolicyWeights>>>,
+    batch_tx: mpsc::Sender<v1::TransitionBatch>,
+    pending: Vec<Transition>,
+    layout: RecordLayout,
+    batch: usize,
+    refused: u64,
+    policy: Option<PolicyHandle>,
+}
+
+impl TrainLoop<'_> {
+    /// Acquire leases for idle envs, step all envs, ship transitions in batches, report episodes.
+    async fn run(&mut self) -> Result<Stopped> {
+        let actor_id = self.rollout.settings().actor_id;
+        let mut out = StepOutput::default();
+        let mut last_log = Instant::now();
+        loop {
+            if self.policy_rx.has_changed().unwrap_or(false) {
+                refresh_policy(&mut self.policy_rx, self.run, &mut self.policy)?;
+            }
+            for env in self.rollout.idle_envs() {
+                let req = AcquireRequest {
+                    actor_id,
+                    env_index: env as u32,
+                    eval: false,
+                };
+                let Some(lease) = self.run.curriculum.acquire(req).await? else {
+                    return Ok(Stopped::CurriculumFinished);
+                };
+                self.rollout.begin(env, lease)?;
+            }
+            out.clear();
+            self.rollout.step(self.policy.as_mut(), &mut out)?;
+            self.pending.append(&mut out.transitions);
+            while self.pending.len() >= self.batch {
+                let batch: Vec<Transition> = self.pending.drain(..self.batch).collect();
+                self.send(&batch).await?;
+            }
+            for (env, report) in out.finished.drain(..) {
+                self.report_and_continue(env, &report).await?;
+            }
+            if last_log.elapsed() > Duration::from_secs(30) {
+                last_log = Instant::now();
+                tracing::info!(
+                    env_steps = self.rollout.env_steps(),
+                    episodes = self.rollout.episodes(),
+                    policy_version = self.policy.as_ref().map(|p| p.version),
+                    "actor progress"
+                );
+            }
+            // Let the connection tasks run between lockstep iterations.
+            tokio::task::yield_now().await;
+        }
+    }
+
+    async fn send(&mut self, transitions: &[Transition]) -> Result<()> {
+        let mut records = vec![0u8; transitions.len() * self.layout.record_bytes()];
+        self.layout
+            .encode_batch(transitions, &mut records)
+            .context("encoding a transition batch")?;
+        let batch = v1::TransitionBatch {
+            actor_id: self.rollout.settings().actor_id,
+            obs_dim: self.layout.obs_dim as u32,
+            action_dim: self.layout.action_dim as u32,
+            count: transitions.len() as u32,
+            records,
+        };
+        self.batch_tx
+            .send(batch)
+            .await
+            .map_err(|_| anyhow::anyhow!("the transition stream to the learner has stopped"))
+    }
+
+    /// Reports a finished episode and starts env `env`'s next one in the same round trip (a
+    /// refused report leaves the env idle: the next iteration acquires a lease for it).
+    async fn report_and_continue(&mut self, env: usize, report: &EpisodeReport) -> Result<()> {
+        let next = AcquireRequest {
+            actor_id: report.actor_id,
+            env_index: env as u32,
+            eval: false,
+        };
+        let (reported, lease) = self.run.curriculum.report_and_acquire(report, next).await?;
+        match reported {
+            Reported::Acked { stage_epoch, .. } => {
+                let dropped = self.rollout.abandon_epochs_before(stage_epoch);
+                if dropped > 0 {
+                    tracing::info!(
+                        stage_epoch,
+                        dropped,
+                        "new stage epoch: dropped unfinished episodes of the old one"
+                    );
+                }
+            }
+            Reported::Refused(why) => {
+                self.refused += 1;
+                tracing::warn!(lease = report.lease_id, "report refused: {why}");
+            }
+        }
+        if let Some(lease) = lease {
+            self.rollout.begin(env, lease)?;
+        }
+        Ok(())
+    }
+}
+
+/// Waits for policies; evaluates the ones that pass a multiple of `eval_freq` (spec 5.7).
+async fn eval_loop(
+    run: &Run,
+    mut rollout: Rollout,
+    mut policy_rx: watch::Receiver<Option<Arc<v1::PolicyWeights>>>,
+) -> Result<Stopped> {
+    let mut schedule = EvalSchedule::from_config(&run.cfg);
+    let episodes = episodes_per_eval_actor(&run.cfg);
+    let actor_id = rollout.settings().actor_id;
+    let mut out = StepOutput::default();
+    let mut current: Option<PolicyHandle> = None;
+    loop {
+        if policy_rx.changed().await.is_err() {
+            bail!("the policy watch ended");
+        }
+        let Some(steps) = policy_rx.borrow().as_ref().map(|w| w.learner_env_steps) else {
+            continue;
+        };
+        let skipped_before = schedule.skipped();
+        if !schedule.due(steps) {
+            continue;
+        }
+        if schedule.skipped() > skipped_before {
+            tracing::warn!(
+                skipped = schedule.skipped() - skipped_before,
+                total_skipped = schedule.skipped(),
+                "the learner passed several eval points during one evaluation: evaluating the newest"
+            );
+        }
+        refresh_policy(&mut policy_rx, run, &mut current)?;
+        let Some(policy) = current.as_mut() else {
+            continue;
+        };
+        let started_at = Instant::now();
+        let (mut started, mut finished, mut successes, mut refused) = (0u64, 0u64, 0u64, 0u64);
+        while finished < episodes {
+            for env in rollout.idle_envs() {
+                if started == episodes {
+                    break;
+                }
+                let req = AcquireRequest {
+                    actor_id,
+                    env_index: env as u32,
+                    eval: true,
+                };
+                let Some(lease) = run.curriculum.acquire(req).await? else {
+                    return Ok(Stopped::CurriculumFinished);
+                };
+                rollout.begin(env, lease)?;
+                started += 1;
+            }
+            out.clear();
+            rollout.step(Some(&mut *policy), &mut out)?;
+            for (env, report) in out.finished.drain(..) {
+                finished += 1;
+                successes += u64::from(report.success_at_end);
+                let (reported, lease) = if started < episodes {
+                    let next = AcquireRequest {
+                        actor_id,
+                        env_index: env as u32,
+                        eval: true,
+                    };
+                    run.curriculum.report_and_acquire(&report, next).await?
+                } else {
+                    (run.curriculum.report(&report).await?, None)
+                };
+                if let Reported::Refused(why) = reported {
+                    refused += 1;
+                    tracing::warn!(lease = report.lease_id, "eval report refused: {why}");
+                }
+                if let Some(lease) = lease {
+                    rollout.begin(env, lease)?;
+                    started += 1;
+                }
+            }
+            tokio::task::yield_now().await;
+        }
+        tracing::info!(
+            policy_version = policy.version,
+            env_steps = policy.env_steps,
+            episodes,
+            success_at_end = successes as f64 / episodes as f64,
+            refused,
+            seconds = started_at.elapsed().as_secs_f64(),
+            "evaluation done"
+        );
+    }
+}

@@ -1,0 +1,36 @@
+//! The learner's policy network as an actor's [`Policy`]: rfcl-learner's CPU [`PolicyNet`]
+//! (the tanh-Gaussian actor of spec 5.1, weights in the safetensors format of
+//! `rfcl_learner::policy`).
+use rand_chacha::ChaCha8Rng;
+use rfcl_core::config::RunConfig;
+pub use rfcl_learner::policy::{PolicyDescription, PolicyError, PolicyNet};
+
+use crate::policy::{LoadError, Policy};
+
+impl Policy for PolicyNet {
+    fn act(&mut self, obs: &[f32], deterministic: bool, rng: &mut ChaCha8Rng) -> Vec<f32> {
+        PolicyNet::act(self, obs, deterministic, rng)
+    }
+
+    fn load(&mut self, weights: &[u8]) -> Result<(), LoadError> {
+        PolicyNet::load(self, weights).map_err(Into::into)
+    }
+}
+
+/// The actor network of `cfg` for these dims, with the weights of one published version.
+pub fn policy_from_weights(
+    weights: &[u8],
+    cfg: &RunConfig,
+    obs_dim: usize,
+    action_dim: usize,
+) -> Result<Box<dyn Policy>, PolicyError> {
+    Ok(Box::new(PolicyNet::from_safetensors(
+        weights, cfg, obs_dim, action_dim,
+    )?))
+}
+
+/// Acting on the CPU from an actor process: one libtorch thread (the cores belong to the
+/// learner; an actor's forward passes are tiny).
+pub fn configure_inference_threads() {
+    tch::set_num_threads(1);
+}

@@ -1,0 +1,14 @@
+//! The `rfcl` binary links libtorch (`rfcl eval` runs the policy network, through rfcl-actor and
+//! rfcl-learner): give it and this package's tests an rpath to libtorch's lib dir so they run
+//! without `LD_LIBRARY_PATH` (design/STACK.md, "Run-time library path"). torch-sys publishes the
+//! dir as `DEP_TCH_LIBTORCH_LIB` (its `links = "tch"` metadata) to packages that depend on it
+//! directly.
+fn main() {
+    println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
+    match std::env::var("DEP_TCH_LIBTORCH_LIB") {
+        Ok(dir) if !dir.is_empty() => println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}"),
+        _ => println!(
+            "cargo:warning=rfcl: torch-sys did not say where libtorch is; binaries will need LD_LIBRARY_PATH"
+        ),
+    }
+}

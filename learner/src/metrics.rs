@@ -1,0 +1,236 @@
+//! Training metrics: `RUN_DIR/metrics.csv`, one row every `sac.log_freq` env steps with the tags
+//! of spec 5.8 (`train/critic/critic_loss`, ..., `time/SPS`) and the learner's own
+//! (`learner/*`: achieved UTD, buffer fill, drops, policy lag, where the time went).
+//!
+//! Rows are keyed by env steps, never by wall time (ARCHITECTURE "Irreproducible runs"). On resume
+//! the rows written after the checkpoint are removed, so a curve never has two points for one
+//! step.
+use std::fs::{File, OpenOptions};
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+
+use crate::sac::UpdateMetrics;
+
+/// The CSV header, in column order.
+pub const COLUMNS: &[&str] = &[
+    "env_steps",
+    "stage",
+    "stage_epoch",
+    "policy_version",
+    "train/critic/critic_loss",
+    "train/critic/q",
+    "train/actor/actor_loss",
+    "train/actor/entropy",
+    "train/temp/temp",
+    "train/temp/temp_loss",
+    "train/training_steps",
+    "train_stats/stage_1_steps",
+    "time/SPS",
+    "time/update_time",
+    "time/total",
+    "learner/iterations",
+    "learner/utd",
+    "learner/utd_target",
+    "learner/updates_per_s",
+    "learner/replay_online",
+    "learner/replay_offline",
+    "learner/replay_bytes",
+    "learner/dropped_stale_epoch",
+    "learner/policy_lag_max",
+    "learner/wait_time",
+    "learner/ingest_time",
+    "learner/publish_time",
+    "learner/checkpoint_time",
+];
+
+/// Means of the update metrics over the iterations of one logging window.
+#[derive(Debug, Clone, Default)]
+pub struct UpdateMeans {
+    sums: [f64; 6],
+    iterations: u64,
+}
+
+impl UpdateMeans {
+    pub fn add(&mut self, m: &UpdateMetrics) {
+        for (sum, (_, value)) in self.sums.iter_mut().zip(m.tagged()) {
+            *sum += value;
+        }
+        self.iterations += 1;
+    }
+
+    pub fn iterations(&self) -> u64 {
+        self.iterations
+    }
+
+    /// The six spec 5.8 update tags, `None` when no iteration ran in the window.
+    pub fn means(&self) -> [Option<f64>; 6] {
+        self.sums
+            .map(|s| (self.iterations > 0).then(|| s / self.iterations as f64))
+    }
+}
+
+/// Seconds spent per activity in one window (ARCHITECTURE "Not knowing where time goes").
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Timings {
+    pub wait: f64,
+    pub ingest: f64,
+    pub update: f64,
+    pub publish: f64,
+    pub checkpoint: f64,
+}
+
+/// One CSV row.
+#[derive(Debug, Clone, Default)]
+pub struct Row {
+    pub env_steps: u64,
+    pub stage: u32,
+    pub stage_epoch: u64,
+    pub policy_version: u64,
+    pub updates: UpdateMeans,
+    pub critic_updates_total: u64,
+    pub stage_1_steps: Option<u64>,
+    pub sps: f64,
+    pub total_s: f64,
+    pub iterations_total: u64,
+    pub utd: f64,
+    pub utd_target: f64,
+    pub updates_per_s: f64,
+    pub replay_online: usize,
+    pub replay_offline: usize,
+    pub replay_bytes: usize,
+    pub dropped_stale_epoch: u64,
+    pub policy_lag_max: u64,
+    pub timings: Timings,
+}
+
+impl Row {
+    fn cells(&self) -> Vec<String> {
+        let opt = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
+        let mut cells = vec![
+            self.env_steps.to_string(),
+            self.stage.to_string(),
+            self.stage_epoch.to_string(),
+            self.policy_version.to_string(),
+        ];
+        cells.extend(self.updates.means().map(opt));
+        cells.extend([
+            self.critic_updates_total.to_string(),
+            self.stage_1_steps.map_or(String::new(), |s| s.to_string()),
+            self.sps.to_string(),
+            self.timings.update.to_string(),
+            self.total_s.to_string(),
+            self.iterations_total.to_string(),
+            self.utd.to_string(),
+            self.utd_target.to_string(),
+            self.updates_per_s.to_string(),
+            self.replay_online.to_string(),
+            self.replay_offline.to_string(),
+            self.replay_bytes.to_string(),
+            self.dropped_stale_epoch.to_string(),
+            self.policy_lag_max.to_string(),
+            self.timings.wait.to_string(),
+            self.timings.ingest.to_string(),
+            self.timings.publish.to_string(),
+            self.timings.checkpoint.to_string(),
+        ]);
+        cells
+    }
+}
+
+/// `metrics.csv`, appended row by row (each row flushed).
+#[derive(Debug)]
+pub struct MetricsCsv {
+    path: PathBuf,
+    file: File,
+}
+
+impl MetricsCsv {
+    /// Opens `path` for appending; writes the header to a new file. With `keep_until`, first
+    /// removes the rows of env steps beyond it (a resume from a checkpoint at that step).
+    pub fn open(path: &Path, keep_until: Option<u64>) -> std::io::Result<Self> {
+        if let (Some(limit), true) = (keep_until, path.exists()) {
+            let kept: Vec<String> = BufReader::new(File::open(path)?)
+                .lines()
+                .collect::<std::io::Result<Vec<_>>>()?
+                .into_iter()
+                .enumerate()
+                .filter(|(i, line)| {
+                    *i == 0
+                        || line
+                            .split(',')
+                            .next()
+                            .and_then(|s| s.parse::<u64>().ok())
+                            .is_some_and(|step| step <= limit)
+                })
+                .map(|(_, line)| line + "\n")
+                .collect();
+            rfcl_core::atomic::atomic_write(path, kept.concat().as_bytes())?;
+        }
+        let new = !path.exists() || std::fs::metadata(path)?.len() == 0;
+        let mut file = OpenOptions::new().create(true).append(true).open(path)?;
+        if new {
+            writeln!(file, "{}", COLUMNS.join(","))?;
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub fn write(&mut self, row: &Row) -> std::io::Result<()> {
+        writeln!(self.file, "{}", row.cells().join(","))?;
+        self.file.flush()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_have_one_cell_per_column_and_resume_drops_later_rows() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.csv");
+        let mut csv = MetricsCsv::open(&path, None).unwrap();
+        let mut row = Row::default();
+        for step in [100, 200, 300] {
+            row.env_steps = step;
+            csv.write(&row).unwrap();
+        }
+        row.updates.add(&UpdateMetrics {
+            critic_loss: 1.0,
+            q: 2.0,
+            actor_loss: 3.0,
+            entropy: 4.0,
+            temp: 0.5,
+            temp_loss: 6.0,
+            critic_updates: 16,
+            actor_updates: 16,
+        });
+        row.env_steps = 400;
+        csv.write(&row).unwrap();
+        drop(csv);
+        let text = std::fs::read_to_string(&path).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], COLUMNS.join(","));
+        assert!(lines.iter().all(|l| l.split(',').count() == COLUMNS.len()));
+        let last: Vec<&str> = lines[4].split(',').collect();
+        assert_eq!(last[4], "1");
+        assert_eq!(last[8], "0.5");
+
+        let mut csv = MetricsCsv::open(&path, Some(200)).unwrap();
+        row.env_steps = 250;
+        csv.write(&row).unwrap();
+        let steps: Vec<String> = std::fs::read_to_string(&path)
+            .unwrap()
+            .lines()
+            .skip(1)
+            .map(|l| l.split(',').next().unwrap().to_string())
+            .collect();
+        assert_eq!(steps, ["100", "200", "250"]);
+    }
+}

@@ -1,0 +1,109 @@
+//! The end of a run: the learner stops by itself once `train.steps` env steps arrived, exits 0
+//! after its final checkpoint, and exports the policy; the PyTorch snippet of docs/POLICY.md
+//! loads that export and acts exactly like the Rust policy.
+mod service_support;
+
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
+
+use rfcl_learner::checkpoint;
+use rfcl_learner::policy::PolicyNet;
+use service_support::*;
+
+const W: u64 = 8;
+const STEPS: u64 = 60;
+
+/// The ```python block of docs/POLICY.md.
+fn policy_snippet() -> String {
+    let doc =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/POLICY.md"))
+            .unwrap();
+    let start = doc.find("```python\n").expect("a python block") + "```python\n".len();
+    let end = start + doc[start..].find("```").unwrap();
+    doc[start..end].to_string()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let run_dir = dir.path().join("run");
+    let demos = write_demos(dir.path());
+    // data_action_scale: the export records the env-action scale of spec 6.4.
+    let config = write_config(dir.path(), W, STEPS, "");
+    let mut text = std::fs::read_to_string(&config).unwrap();
+    text = text.replace(
+        "  shuffle_demos: false\n",
+        "  shuffle_demos: false\n  data_action_scale: 1.5\n",
+    );
+    std::fs::write(&config, text).unwrap();
+    let curriculum = Curriculum::start(&config, &demos, &run_dir);
+    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
+    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    let mut learner = Learner::start(&args);
+    let mut client = learner.client().await;
+
+    let summary = push(&mut client, batches(0..STEPS, 10, 0)).await.unwrap();
+    assert_eq!(summary.accepted, STEPS);
+    let status = learner.wait(Duration::from_secs(60));
+    assert!(
+        status.success(),
+        "the learner exits 0 at the budget: {status}"
+    );
+
+    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))
+        .unwrap()
+        .unwrap();
+    assert_eq!(manifest.progress.env_steps, STEPS);
+    let iterations = earned(STEPS, W);
+    assert_eq!(manifest.progress.critic_updates, G * iterations);
+
+    let (policy, desc) = PolicyNet::from_export(&run_dir).unwrap();
+    assert_eq!((desc.shape.obs_dim, desc.shape.action_dim), (OBS, ACT));
+    assert_eq!(desc.shape.actor_features, vec![16, 16]);
+    assert_eq!(
+        (desc.policy_version, desc.env_steps),
+        (1 + iterations, STEPS)
+    );
+    assert_eq!(desc.env_id, "PointMaze-v0");
+    let scale = desc
+        .action_scale
+        .clone()
+        .expect("data_action_scale was set");
+    assert_eq!(scale.len(), ACT);
+    assert!(scale.iter().all(|&s| s.is_finite() && s > 0.0));
+    assert!(scale.iter().any(|&s| s != 1.0), "{scale:?}");
+
+    // The documented PyTorch snippet acts like the Rust policy.
+    let python = Path::new(env!("CARGO_MANIFEST_DIR")).join("../.venv/bin/python");
+    assert!(
+        python.exists(),
+        "{} is missing (scripts/setup.sh creates the venv)",
+        python.display()
+    );
+    let script = dir.path().join("rfcl_policy.py");
+    std::fs::write(&script, policy_snippet()).unwrap();
+    let obs = [0.3f32, -0.7, 0.05, 0.9];
+    let out = Command::new(&python)
+        .arg(&script)
+        .arg(&run_dir)
+        .args(obs.iter().map(|o| o.to_string()))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let from_torch: Vec<f32> = serde_json::from_slice(&out.stdout).unwrap();
+    let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
+    let agent = policy.act(&obs, true, &mut rng);
+    let from_rust: Vec<f32> = agent.iter().zip(&scale).map(|(a, s)| a / s).collect();
+    assert_eq!(from_torch.len(), ACT);
+    for (t, r) in from_torch.iter().zip(&from_rust) {
+        assert!(
+            (t - r).abs() < 1e-5,
+            "torch {from_torch:?} vs rust {from_rust:?}"
+        );
+    }
+}

@@ -1,0 +1,223 @@
+//! SIGKILL after a checkpoint, then `--resume` (ARCHITECTURE "Resume that comes back empty"): the
+//! resumed learner holds exactly the checkpointed weights, optimiser states, temperature,
+//! counters, RNG states and both buffers, and, fed the same transitions, ends bit for bit where an
+//! uninterrupted run ends.
+mod service_support;
+
+use std::path::Path;
+use std::time::Duration;
+
+use rfcl_learner::checkpoint::{self, Manifest};
+use service_support::*;
+
+const W: u64 = 8;
+
+/// Everything a checkpoint holds, in comparable form.
+#[derive(Debug, PartialEq)]
+struct Snapshot {
+    networks: Vec<(String, Vec<f64>)>,
+    optimizers: Vec<(String, Vec<f64>)>,
+    replay: Vec<u8>,
+    manifest: serde_json::Value,
+}
+
+fn values(t: &tch::Tensor) -> Vec<f64> {
+    Vec::<f64>::try_from(t.to_kind(tch::Kind::Double).flatten(0, -1)).unwrap()
+}
+
+fn snapshot(run_dir: &Path) -> (Snapshot, Manifest) {
+    let dir = checkpoint::checkpoint_dir(run_dir);
+    let manifest = checkpoint::read_manifest(&dir)
+        .unwrap()
+        .expect("a checkpoint");
+    let read = |file: &str| {
+        let mut tensors: Vec<(String, Vec<f64>)> = tch::Tensor::read_safetensors(dir.join(file))
+            .unwrap()
+            .iter()
+            .map(|(n, t)| (n.clone(), values(t)))
+            .collect();
+        tensors.sort_by(|a, b| a.0.cmp(&b.0));
+        tensors
+    };
+    // Everything but the file names, the generation and the wall-clock time.
+    let mut json = serde_json::to_value(&manifest).unwrap();
+    for key in [
+        "generation",
+        "networks_file",
+        "optimizers_file",
+        "replay_file",
+    ] {
+        json.as_object_mut().unwrap().remove(key);
+    }
+    json["progress"].as_object_mut().unwrap().remove("wall_ms");
+    let snap = Snapshot {
+        networks: read(&manifest.networks_file),
+        optimizers: read(&manifest.optimizers_file),
+        replay: std::fs::read(dir.join(&manifest.replay_file)).unwrap(),
+        manifest: json,
+    };
+    (snap, manifest)
+}
+
+/// The env-step column and the spec 5.8 update columns of metrics.csv.
+fn curves(run_dir: &Path) -> Vec<Vec<String>> {
+    let csv = std::fs::read_to_string(run_dir.join("metrics.csv")).unwrap();
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let cols: Vec<usize> = header
+        .iter()
+        .enumerate()
+        .filter(|(_, h)| **h == "env_steps" || h.starts_with("train/") || **h == "policy_version")
+        .map(|(i, _)| i)
+        .collect();
+    csv.lines()
+        .skip(1)
+        .map(|line| {
+            let cells: Vec<&str> = line.split(',').collect();
+            cols.iter().map(|&i| cells[i].to_string()).collect()
+        })
+        .collect()
+}
+
+struct Run {
+    _curriculum: Curriculum,
+    config: std::path::PathBuf,
+    demos: std::path::PathBuf,
+    run_dir: std::path::PathBuf,
+    curriculum_addr: String,
+}
+
+impl Run {
+    fn new(dir: &Path) -> Run {
+        let demos = write_demos(dir);
+        let config = write_config(dir, W, 100_000, "");
+        let run_dir = dir.join("run");
+        let curriculum = Curriculum::start(&config, &demos, &run_dir);
+        Run {
+            curriculum_addr: curriculum.grpc.clone(),
+            _curriculum: curriculum,
+            config,
+            demos,
+            run_dir,
+        }
+    }
+
+    fn start(&self, resume: bool) -> Learner {
+        let mut args = Learner::args(
+            &self.config,
+            &self.curriculum_addr,
+            &self.demos,
+            &self.run_dir,
+        );
+        if resume {
+            // --resume RUN_DIR instead of --run-dir RUN_DIR.
+            let at = args.iter().position(|a| a == "--run-dir").unwrap();
+            args[at] = "--resume".into();
+        }
+        let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+        Learner::start(&args)
+    }
+}
+
+async fn feed(learner: &Learner, range: std::ops::Range<u64>) {
+    let mut client = learner.client().await;
+    let end = range.end;
+    let summary = push(&mut client, batches(range.clone(), 6, 0))
+        .await
+        .unwrap();
+    assert_eq!(summary.accepted, range.end - range.start);
+    wait_health(&mut client, Duration::from_secs(60), |h| {
+        h.env_steps == end && h.updates == G * earned(end, W)
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigkill_then_resume_restores_everything_and_continues_exactly() {
+    // The reference: 80 env steps without interruption.
+    let dir_a = tempfile::tempdir().unwrap();
+    let a = Run::new(dir_a.path());
+    let mut learner = a.start(false);
+    feed(&learner, 0..80).await;
+    assert!(learner.sigterm().success());
+    let (reference, reference_manifest) = snapshot(&a.run_dir);
+    assert_eq!(reference_manifest.progress.env_steps, 80);
+
+    // Interrupted: 52 env steps (checkpoint at 40, save_freq), then SIGKILL.
+    let dir_b = tempfile::tempdir().unwrap();
+    let b = Run::new(dir_b.path());
+    let mut learner = b.start(false);
+    feed(&learner, 0..52).await;
+    let (at_40, manifest_40) = snapshot(&b.run_dir);
+    assert_eq!(manifest_40.progress.env_steps, 40);
+    assert_eq!(manifest_40.online.len, 40);
+    assert_eq!(manifest_40.offline.unwrap().len, DEMOS * DEMO_LEN);
+    learner.sigkill();
+
+    // Resumed: the state is the checkpoint's, published version and counters included...
+    let mut learner = b.start(true);
+    let mut client = learner.client().await;
+    let h = health(&mut client).await;
+    assert_eq!(
+        (h.env_steps, h.updates, h.policy_version),
+        (
+            40,
+            manifest_40.progress.critic_updates,
+            manifest_40.progress.policy_version
+        )
+    );
+    let mut watch = client
+        .watch_policy(rfcl_proto::v1::WatchPolicyRequest { after_version: 0 })
+        .await
+        .unwrap()
+        .into_inner();
+    let weights = watch.message().await.unwrap().unwrap();
+    assert_eq!(
+        (weights.version, weights.learner_env_steps),
+        (manifest_40.progress.policy_version, 40)
+    );
+    // ...and a checkpoint written right away holds exactly what the killed learner wrote.
+    assert!(learner.sigterm().success());
+    let (resumed, _) = snapshot(&b.run_dir);
+    assert_eq!(resumed.networks, at_40.networks, "weights");
+    assert_eq!(resumed.optimizers, at_40.optimizers, "optimiser states");
+    assert!(resumed.replay == at_40.replay, "buffer contents");
+    assert_eq!(
+        resumed.manifest, at_40.manifest,
+        "counters, limiter, RNG states"
+    );
+
+    // Fed the rest of the same stream, the resumed learner ends where the reference ended.
+    let mut learner = b.start(true);
+    feed(&learner, 40..80).await;
+    assert!(learner.sigterm().success());
+    let (finished, _) = snapshot(&b.run_dir);
+    assert_eq!(finished.networks, reference.networks, "weights");
+    assert_eq!(
+        finished.optimizers, reference.optimizers,
+        "optimiser states"
+    );
+    assert!(finished.replay == reference.replay, "buffer contents");
+    assert_eq!(finished.manifest, reference.manifest);
+    // The curves match too: no row lost, none doubled by the kill.
+    let curve = curves(&b.run_dir);
+    assert_eq!(curve, curves(&a.run_dir));
+    let steps: Vec<&str> = curve.iter().map(|r| r[0].as_str()).collect();
+    assert_eq!(steps, ["20", "40", "60", "80"]);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fresh_start_refuses_a_run_dir_with_a_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = Run::new(dir.path());
+    let mut learner = run.start(false);
+    assert!(learner.sigterm().success());
+    let args = Learner::args(&run.config, &run.curriculum_addr, &run.demos, &run.run_dir);
+    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    let (status, stdout, stderr) = run_learner(&args);
+    assert!(!status.success());
+    assert!(stdout.is_empty(), "no ready line: {stdout:?}");
+    assert!(
+        stderr.contains("already holds a learner checkpoint") && stderr.contains("--resume"),
+        "{stderr}"
+    );
+}

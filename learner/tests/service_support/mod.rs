@@ -1,0 +1,431 @@
+//! Shared by the learner's cross-process tests (`service_*.rs`): small demo files and configs, the
+//! `curriculum-server` and `learner` binaries as children on 127.0.0.1:0, transition batches.
+#![allow(dead_code)]
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use rfcl_core::demo::{Demo, DemoSet, ResetArgs, StateLayout, SuccessSource};
+use rfcl_core::transition::{RecordLayout, Transition};
+use rfcl_proto::v1;
+use rfcl_proto::v1::curriculum_client::CurriculumClient;
+use rfcl_proto::v1::learner_client::LearnerClient;
+use tonic::transport::Channel;
+
+/// HDF5 opens files without O_CLOEXEC and holds a flock on them: a child forked while another test
+/// thread has a demo file open would inherit that lock for its whole life. Writing demo files and
+/// spawning children take this lock.
+pub static HDF5_FORK_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+pub fn hdf5_fork_guard() -> std::sync::MutexGuard<'static, ()> {
+    HDF5_FORK_LOCK.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+pub const OBS: usize = 4;
+pub const ACT: usize = 2;
+const STATE: usize = 4;
+/// Actions per demo.
+pub const DEMO_LEN: usize = 12;
+pub const DEMOS: usize = 3;
+
+/// `DEMOS` demos of `DEMO_LEN` steps, succeeding on the last 4 steps, actions in [-0.8, 0.8].
+pub fn write_demos(dir: &Path) -> PathBuf {
+    let t = DEMO_LEN;
+    let demos = (0..DEMOS)
+        .map(|i| Demo {
+            episode_id: i as u64,
+            obs_dim: OBS,
+            action_dim: ACT,
+            state_dim: STATE,
+            obs: (0..(t + 1) * OBS)
+                .map(|k| ((k + i) as f32 * 0.1).sin())
+                .collect(),
+            actions: (0..t * ACT)
+                .map(|k| 0.8 * ((k * 3 + i) as f32 * 0.7).cos())
+                .collect(),
+            success: (0..t).map(|s| s + 4 >= t).collect(),
+            env_states: (0..=t)
+                .flat_map(|s| [i as f32, s as f32, 0.5, -0.5])
+                .collect(),
+            succeeded: true,
+            success_source: SuccessSource::Steps,
+            reset: ResetArgs {
+                seed: Some(100 + i as u64),
+                options: serde_json::json!({}),
+            },
+        })
+        .collect();
+    let path = dir.join("demos.h5");
+    let _guard = hdf5_fork_guard();
+    DemoSet {
+        path: path.clone(),
+        sidecar: None,
+        env_id: Some("PointMaze-v0".into()),
+        env_info: serde_json::json!({"env_id": "PointMaze-v0", "env_kwargs": {}, "max_episode_steps": 50}),
+        control_mode: None,
+        obs_dim: OBS,
+        action_dim: ACT,
+        state_dim: STATE,
+        state_layout: StateLayout::flat(STATE),
+        demos,
+    }
+    .write(&path)
+    .expect("writing the test demos");
+    path
+}
+
+/// The schedule of the test config: K = num_envs · steps_per_env = 4 env steps per iteration,
+/// G = 2 critic updates, W = `seed_steps` warm-up steps.
+pub const K: u64 = 4;
+pub const G: u64 = 2;
+
+/// A small, fast config (16-wide networks, 2 critics) with `extra` YAML lines appended under the
+/// given sections (`sac`, `train`: see the format string).
+pub fn write_config(dir: &Path, seed_steps: u64, steps: u64, sac_extra: &str) -> PathBuf {
+    let path = dir.join("config.yml");
+    std::fs::write(
+        &path,
+        format!(
+            "name: ltest\nseed: 3\n\
+             env:\n  env_id: PointMaze-v0\n  suite: pointmaze\n  max_episode_steps: 50\n  num_envs: 2\n\
+             train:\n  steps: {steps}\n  num_demos: {DEMOS}\n  shuffle_demos: false\n\
+             sac:\n  num_seed_steps: {seed_steps}\n  replay_buffer_capacity: 1000\n  batch_size: 16\n  steps_per_env: 2\n  \
+             grad_updates_per_step: 2\n  actor_update_freq: 1\n  critic_ensemble: 2\n  target_pool: 2\n  \
+             log_freq: 20\n  save_freq: 40\n{sac_extra}\
+             network:\n  actor_features: [16, 16]\n  critic_features: [16, 16]\n\
+             reverse:\n  reverse_step_size: 50\n  per_demo_buffer_size: 1\n\
+             forward:\n  num_seeds: 10\n\
+             service:\n  num_actors: 1\n"
+        ),
+    )
+    .unwrap();
+    path
+}
+
+fn binary_next_to_learner(name: &str) -> PathBuf {
+    let path = Path::new(env!("CARGO_BIN_EXE_learner")).with_file_name(name);
+    assert!(
+        path.exists(),
+        "{} is missing: build it first with `cargo build -p rfcl-curriculum`",
+        path.display()
+    );
+    path
+}
+
+/// Reads the child's first stdout line; `Err` with its exit status and stderr when it exited.
+fn first_line(child: &mut Child) -> Result<String, String> {
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    if line.trim().is_empty() {
+        let status = child.wait().unwrap();
+        let mut err = String::new();
+        if let Some(mut stderr) = child.stderr.take() {
+            stderr.read_to_string(&mut err).unwrap();
+        }
+        return Err(format!("exited with {status}; stderr:\n{err}"));
+    }
+    Ok(line)
+}
+
+/// A running `curriculum-server` child; killed when dropped.
+pub struct Curriculum {
+    pub child: Child,
+    pub grpc: String,
+}
+
+impl Curriculum {
+    pub fn start(config: &Path, demos: &Path, run_dir: &Path) -> Curriculum {
+        let guard = hdf5_fork_guard();
+        let mut child = Command::new(binary_next_to_learner("curriculum-server"))
+            .args(["--config".as_ref(), config.as_os_str()])
+            .args(["--demos".as_ref(), demos.as_os_str()])
+            .args(["--run-dir".as_ref(), run_dir.as_os_str()])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("starting curriculum-server");
+        drop(guard);
+        let line = first_line(&mut child).expect("curriculum-server did not start");
+        let grpc = line
+            .split("grpc=")
+            .nth(1)
+            .and_then(|s| s.split_whitespace().next())
+            .expect("curriculum-server's ready line names its gRPC address");
+        Curriculum {
+            child,
+            grpc: format!("http://{grpc}"),
+        }
+    }
+
+    pub async fn client(&self) -> CurriculumClient<Channel> {
+        CurriculumClient::connect(self.grpc.clone()).await.unwrap()
+    }
+
+    /// Acquires and reports successful episodes until stage 2 begins (spec 2.7); returns its
+    /// stage epoch.
+    pub async fn drive_to_stage_2(&self) -> u64 {
+        let mut client = self.client().await;
+        for _ in 0..5000 {
+            let lease = client
+                .acquire(v1::AcquireRequest {
+                    actor_id: 9,
+                    env_index: 0,
+                    eval: false,
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            if lease.stage == 2 {
+                return lease.stage_epoch;
+            }
+            let ack = client
+                .report(v1::EpisodeReport {
+                    lease_id: lease.lease_id,
+                    success_at_end: true,
+                    success_once: true,
+                    episode_return: 1.0,
+                    length: 5,
+                    policy_version: 0,
+                    stage_epoch: lease.stage_epoch,
+                    actor_id: 9,
+                    actor_env_steps: 0,
+                    policy_env_steps: 0,
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            if ack.stage == 2 {
+                return ack.stage_epoch;
+            }
+        }
+        panic!("stage 1 did not end within 5000 successful episodes");
+    }
+}
+
+impl Drop for Curriculum {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A running `learner` child; killed when dropped.
+pub struct Learner {
+    pub child: Child,
+    pub grpc: String,
+}
+
+/// Runs the learner binary with `args` to completion (for start-up failures): exit status, stdout
+/// and stderr.
+pub fn run_learner(args: &[&std::ffi::OsStr]) -> (ExitStatus, String, String) {
+    let guard = hdf5_fork_guard();
+    let child = Command::new(env!("CARGO_BIN_EXE_learner"))
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("starting learner");
+    drop(guard);
+    let out = child.wait_with_output().unwrap();
+    (
+        out.status,
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+impl Learner {
+    /// Starts `learner --threads 1 ARGS` and waits for its ready line.
+    pub fn start(args: &[&std::ffi::OsStr]) -> Learner {
+        let guard = hdf5_fork_guard();
+        let mut child = Command::new(env!("CARGO_BIN_EXE_learner"))
+            .arg("--threads")
+            .arg("1")
+            .args(args)
+            .env("OMP_WAIT_POLICY", "PASSIVE")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("starting learner");
+        drop(guard);
+        let line = match first_line(&mut child) {
+            Ok(line) => line,
+            Err(e) => panic!("learner did not start: {e}"),
+        };
+        assert!(
+            line.starts_with("learner ready grpc="),
+            "unexpected ready line {line:?}"
+        );
+        let grpc = line
+            .trim()
+            .trim_start_matches("learner ready grpc=")
+            .to_string();
+        // Keep stderr drained (its logs) so the child never blocks on a full pipe.
+        // RFCL_TEST_LOGS=1 shows them.
+        let stderr = child.stderr.take().unwrap();
+        std::thread::spawn(move || {
+            let show = std::env::var_os("RFCL_TEST_LOGS").is_some();
+            for line in BufReader::new(stderr).lines() {
+                match line {
+                    Ok(line) if show => eprintln!("learner: {line}"),
+                    Ok(_) => {}
+                    Err(_) => break,
+                }
+            }
+        });
+        Learner {
+            child,
+            grpc: format!("http://{grpc}"),
+        }
+    }
+
+    /// The usual arguments: config, curriculum, demos, run dir.
+    pub fn args(
+        config: &Path,
+        curriculum: &str,
+        demos: &Path,
+        run_dir: &Path,
+    ) -> Vec<std::ffi::OsString> {
+        vec![
+            "--config".into(),
+            config.into(),
+            "--curriculum".into(),
+            curriculum.into(),
+            "--demos".into(),
+            demos.into(),
+            "--run-dir".into(),
+            run_dir.into(),
+        ]
+    }
+
+    pub async fn client(&self) -> LearnerClient<Channel> {
+        LearnerClient::connect(self.grpc.clone()).await.unwrap()
+    }
+
+    pub fn sigkill(&mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+
+    /// SIGTERM and wait: the learner writes its final checkpoint and exports the policy.
+    pub fn sigterm(&mut self) -> ExitStatus {
+        let status = Command::new("kill")
+            .arg("-TERM")
+            .arg(self.child.id().to_string())
+            .status()
+            .unwrap();
+        assert!(status.success());
+        self.wait(Duration::from_secs(60))
+    }
+
+    /// Waits for the child to exit on its own.
+    pub fn wait(&mut self, limit: Duration) -> ExitStatus {
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status;
+            }
+            assert!(
+                start.elapsed() < limit,
+                "the learner did not exit within {limit:?}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Learner {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Transition `i` of a deterministic stream (values depend on `i` only).
+pub fn transition(i: u64, stage_epoch: u64, policy_version: u64) -> Transition {
+    let x = i as f32;
+    Transition {
+        obs: (0..OBS).map(|k| (x * 0.13 + k as f32).sin()).collect(),
+        action: (0..ACT)
+            .map(|k| (x * 0.29 + k as f32).cos() * 0.9)
+            .collect(),
+        reward: if i.is_multiple_of(5) { 1.0 } else { 0.0 },
+        next_obs: (0..OBS)
+            .map(|k| ((x + 1.0) * 0.13 + k as f32).sin())
+            .collect(),
+        mask: 1.0,
+        stage_epoch,
+        actor_id: 1,
+        policy_version,
+    }
+}
+
+/// Transitions `range` as batches of `per_batch`.
+pub fn batches(
+    range: std::ops::Range<u64>,
+    per_batch: usize,
+    stage_epoch: u64,
+) -> Vec<v1::TransitionBatch> {
+    let layout = RecordLayout::new(OBS, ACT);
+    let all: Vec<Transition> = range.map(|i| transition(i, stage_epoch, 0)).collect();
+    all.chunks(per_batch)
+        .map(|chunk| {
+            let mut records = vec![0; chunk.len() * layout.record_bytes()];
+            layout.encode_batch(chunk, &mut records).unwrap();
+            v1::TransitionBatch {
+                actor_id: 1,
+                obs_dim: OBS as u32,
+                action_dim: ACT as u32,
+                count: chunk.len() as u32,
+                records,
+            }
+        })
+        .collect()
+}
+
+/// Pushes `batches` in one `PushTransitions` stream.
+pub async fn push(
+    client: &mut LearnerClient<Channel>,
+    batches: Vec<v1::TransitionBatch>,
+) -> Result<v1::PushSummary, tonic::Status> {
+    client
+        .push_transitions(tokio_stream::iter(batches))
+        .await
+        .map(|r| r.into_inner())
+}
+
+pub async fn health(client: &mut LearnerClient<Channel>) -> v1::HealthReply {
+    client
+        .health(v1::HealthRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+}
+
+/// Polls Health until `done` holds (panics after `limit`).
+pub async fn wait_health(
+    client: &mut LearnerClient<Channel>,
+    limit: Duration,
+    done: impl Fn(&v1::HealthReply) -> bool,
+) -> v1::HealthReply {
+    let start = Instant::now();
+    loop {
+        let h = health(client).await;
+        if done(&h) {
+            return h;
+        }
+        assert!(
+            start.elapsed() < limit,
+            "condition not met within {limit:?}; last health {h:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Iterations the spec 5.4 schedule grants after `n` env steps with warm-up `w` (one phase).
+pub fn earned(n: u64, w: u64) -> u64 {
+    (n / K).saturating_sub(w.div_ceil(K))
+}

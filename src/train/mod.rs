@@ -1,0 +1,756 @@
+//! `rfcl train`: one RFCL run on this machine (ARCHITECTURE.md, "Processes").
+//!
+//! It resolves the config into `RUN_DIR/config.yml`, starts the curriculum server, the learner,
+//! `service.num_actors` actors (`env.num_envs` split over them) and `service.num_eval_actors` eval
+//! actors as child processes on 127.0.0.1 (binaries next to `rfcl`), and then watches them:
+//!
+//! * a progress bar (env steps / `train.steps`, stage, last eval success, updates/s, ETA) from the
+//!   learner's Health and the curriculum's GetState;
+//! * a dead actor is respawned, and said so; a failing curriculum server or learner stops the run
+//!   with its error (the last lines of its log);
+//! * the run ends when the learner exits after its budget, or when the mean success of the last 5
+//!   evaluations reaches `service.stop_at_eval_success`; Ctrl-C / SIGTERM stops it cleanly, and
+//!   `--resume RUN_DIR` continues it;
+//! * at the end it writes and prints `RUN_DIR/summary.json`.
+//!
+//! Files in the run directory beside the services' own: `config.yml` (resolved), `logs/<child>.log`,
+//! `processes.json` (while a session runs: the services' addresses, every child's name and pid),
+//! `train_progress.json` (wall time of earlier sessions, eval completion times), `summary.json`.
+pub mod children;
+pub mod progress;
+
+use std::ffi::OsString;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
+use rfcl_curriculum::dashboard::DashboardView;
+use rfcl_proto::v1;
+use rfcl_proto::v1::curriculum_client::CurriculumClient;
+use rfcl_proto::v1::learner_client::LearnerClient;
+use tonic::transport::Channel;
+
+use children::{describe, find_setpriv, Child, Launcher};
+use progress::{
+    ready_field, split_envs, summarize, CompleteEval, Ending, EvalTracker, LearnerCounters,
+    RespawnLimiter, RunProgress, Summary,
+};
+
+/// How long a service may take to print its ready line (the learner loads demos and may restore
+/// a replay buffer from a checkpoint).
+const READY_TIMEOUT: Duration = Duration::from_secs(180);
+const POLL_EVERY: Duration = Duration::from_millis(500);
+const STATE_EVERY: u32 = 4;
+/// Grace periods between SIGTERM and SIGKILL.
+const ACTOR_GRACE: Duration = Duration::from_secs(5);
+const LEARNER_GRACE: Duration = Duration::from_secs(120);
+const SERVER_GRACE: Duration = Duration::from_secs(20);
+
+/// What `rfcl train` was asked to do.
+#[derive(Debug, Clone)]
+pub struct TrainArgs {
+    pub config: PathBuf,
+    pub overrides: Vec<String>,
+    pub resume: Option<PathBuf>,
+    pub run_dir: Option<PathBuf>,
+    /// `learner --threads`; `None`: all cores but one.
+    pub learner_threads: Option<u32>,
+}
+
+/// Runs a training session to its end. Runs on the calling (main) thread: children are forked from
+/// it, which their parent-death signal depends on.
+pub fn train(args: TrainArgs) -> Result<Summary> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    runtime.block_on(train_async(args))
+}
+
+/// The resolved run: config, directory, demos.
+#[derive(Debug)]
+struct Prepared {
+    cfg: RunConfig,
+    learner_threads: u32,
+    run_dir: PathBuf,
+    config_path: PathBuf,
+    demos: PathBuf,
+    resume: bool,
+    progress: RunProgress,
+}
+
+fn prepare(args: &TrainArgs) -> Result<Prepared> {
+    let requested = resolve_file(&args.config, &args.overrides)?;
+    let (cfg, run_dir, resume) = match &args.resume {
+        Some(dir) => {
+            let stored = dir.join("config.yml");
+            if !stored.is_file() {
+                bail!(
+                    "{} is not a run directory to resume: it has no config.yml",
+                    dir.display()
+                );
+            }
+            let cfg = resolve_file(&stored, &args.overrides)
+                .with_context(|| format!("the stored config of the run in {}", dir.display()))?;
+            if requested != cfg {
+                eprintln!(
+                    "note: resuming with the run's stored config ({}) and the overrides given; \
+                     it differs from {}",
+                    stored.display(),
+                    args.config.display()
+                );
+            }
+            (cfg, dir.clone(), true)
+        }
+        None => {
+            let run_dir = match &args.run_dir {
+                Some(dir) => {
+                    if dir.join("config.yml").exists() {
+                        bail!(
+                            "{} already holds a run: continue it with --resume {} or choose \
+                             another --run-dir",
+                            dir.display(),
+                            dir.display()
+                        );
+                    }
+                    dir.clone()
+                }
+                None => free_run_dir(&PathBuf::from("runs"), &requested.name),
+            };
+            (requested, run_dir, false)
+        }
+    };
+    check_runnable(&cfg)?;
+    let demos = PathBuf::from(cfg.train.dataset_path.clone().expect("checked"));
+    std::fs::create_dir_all(run_dir.join("logs"))
+        .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
+    let config_path = run_dir.join("config.yml");
+    rfcl_core::atomic::atomic_write(&config_path, to_yaml(&cfg).as_bytes())
+        .with_context(|| format!("writing {}", config_path.display()))?;
+    let mut progress = if resume {
+        read_progress(&run_dir)?
+    } else {
+        RunProgress::default()
+    };
+    progress.sessions += 1;
+    let learner_threads = args.learner_threads.unwrap_or_else(|| {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get() as u32);
+        cores.saturating_sub(1).max(1)
+    });
+    if learner_threads == 0 {
+        bail!("--learner-threads must be at least 1");
+    }
+    Ok(Prepared {
+        cfg,
+        learner_threads,
+        run_dir,
+        config_path,
+        demos,
+        resume,
+        progress,
+    })
+}
+
+/// `runs/<name>`, or `runs/<name>-2`, `-3`, ... when it already holds a run.
+fn free_run_dir(root: &Path, name: &str) -> PathBuf {
+    let first = root.join(name);
+    if !first.join("config.yml").exists() {
+        return first;
+    }
+    (2..)
+        .map(|n| root.join(format!("{name}-{n}")))
+        .find(|d| !d.join("config.yml").exists())
+        .expect("an unbounded range has a free name")
+}
+
+/// What must hold before any process starts.
+fn check_runnable(cfg: &RunConfig) -> Result<()> {
+    let Some(demos) = &cfg.train.dataset_path else {
+        bail!(
+            "train.dataset_path is not set: `rfcl train` generates nothing by itself. Make demos, \
+             e.g. `rfcl demos generate --env pointmaze -n 5 --out runs/demos/pointmaze.h5`, and \
+             pass train.dataset_path=runs/demos/pointmaze.h5"
+        );
+    };
+    if !Path::new(demos).is_file() {
+        bail!("train.dataset_path: demo file {demos} not found");
+    }
+    rfcl_actor::suite::check_supported(&cfg.env)?;
+    let s = &cfg.service;
+    if s.num_actors == 0 {
+        bail!("service.num_actors must be at least 1");
+    }
+    if cfg.env.num_envs < s.num_actors {
+        bail!(
+            "env.num_envs ({}) must be at least service.num_actors ({}): every actor steps at \
+             least one env",
+            cfg.env.num_envs,
+            s.num_actors
+        );
+    }
+    if s.num_eval_actors > 0 && cfg.eval_env.num_envs < s.num_eval_actors {
+        bail!(
+            "eval_env.num_envs ({}) must be at least service.num_eval_actors ({})",
+            cfg.eval_env.num_envs,
+            s.num_eval_actors
+        );
+    }
+    if s.num_eval_actors == 0 && s.stop_at_eval_success.is_some() {
+        eprintln!(
+            "note: service.stop_at_eval_success is set but service.num_eval_actors is 0: \
+             the run uses its whole budget"
+        );
+    }
+    Ok(())
+}
+
+const PROGRESS_FILE: &str = "train_progress.json";
+
+fn read_progress(run_dir: &Path) -> Result<RunProgress> {
+    let path = run_dir.join(PROGRESS_FILE);
+    match std::fs::read_to_string(&path) {
+        Ok(text) => {
+            serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(RunProgress::default()),
+        Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
+    }
+}
+
+fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
+    let text = serde_json::to_string_pretty(value)?;
+    rfcl_core::atomic::atomic_write(path, format!("{text}\n").as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// An actor process and how to restart it.
+struct ActorProc {
+    id: u32,
+    eval: bool,
+    envs: u32,
+    child: Option<Child>,
+    /// Exited by itself with success (the curriculum finished): not respawned.
+    done: bool,
+}
+
+/// The processes of a running session and what is known of them.
+struct Session {
+    prep: Prepared,
+    launcher: Launcher,
+    server: Child,
+    learner: Option<Child>,
+    learner_addr: String,
+    curriculum_addr: String,
+    dashboard: String,
+    actors: Vec<ActorProc>,
+    curriculum: CurriculumClient<Channel>,
+    learner_client: LearnerClient<Channel>,
+    started: Instant,
+    evals: EvalTracker,
+    counters: LearnerCounters,
+    last_view: Option<DashboardView>,
+    respawns: RespawnLimiter,
+    bar: Bar,
+    updates_per_s: f64,
+    last_health: Option<(Instant, u64)>,
+}
+
+async fn train_async(args: TrainArgs) -> Result<Summary> {
+    let prep = prepare(&args)?;
+    let bin_dir = std::env::current_exe()
+        .context("locating the rfcl executable")?
+        .parent()
+        .map(Path::to_path_buf)
+        .context("the rfcl executable has no directory")?;
+    let setpriv = find_setpriv();
+    if setpriv.is_none() {
+        eprintln!(
+            "warning: setpriv (util-linux) not found: if rfcl is killed with SIGKILL its children \
+             keep running"
+        );
+    }
+    let launcher = Launcher {
+        bin_dir,
+        log_dir: prep.run_dir.join("logs"),
+        setpriv,
+    };
+    eprintln!(
+        "{} run '{}' in {} (logs in {})",
+        if prep.resume { "resuming" } else { "starting" },
+        prep.cfg.name,
+        prep.run_dir.display(),
+        launcher.log_dir.display()
+    );
+    let mut session = Session::start(prep, launcher).await?;
+    let ending = session.supervise().await;
+    session.finish(ending).await
+}
+
+fn os(args: &[&str]) -> Vec<OsString> {
+    args.iter().map(OsString::from).collect()
+}
+
+impl Session {
+    async fn start(prep: Prepared, launcher: Launcher) -> Result<Session> {
+        let cfg = &prep.cfg;
+        let run_dir = prep.run_dir.as_os_str().to_owned();
+        let config = prep.config_path.as_os_str().to_owned();
+        let demos = prep.demos.as_os_str().to_owned();
+
+        // Curriculum server.
+        let mut args = vec![
+            "--config".into(),
+            config.clone(),
+            "--demos".into(),
+            demos.clone(),
+        ];
+        args.extend(os(&[
+            "--port",
+            &cfg.service.curriculum_port.to_string(),
+            "--dashboard-port",
+            &cfg.service.dashboard_port.to_string(),
+        ]));
+        args.push(if prep.resume { "--resume" } else { "--run-dir" }.into());
+        args.push(run_dir.clone());
+        let mut server = launcher.spawn("curriculum-server", "curriculum-server", args)?;
+        let line = server.ready_line(READY_TIMEOUT).await?;
+        let (Some(curriculum_addr), Some(dashboard)) =
+            (ready_field(&line, "grpc"), ready_field(&line, "dashboard"))
+        else {
+            bail!("unexpected ready line from the curriculum server: {line:?}");
+        };
+        let curriculum_url = format!("http://{curriculum_addr}");
+
+        // Learner.
+        let mut args = vec!["--config".into(), config, "--demos".into(), demos];
+        args.extend(os(&[
+            "--curriculum",
+            &curriculum_url,
+            "--port",
+            &cfg.service.learner_port.to_string(),
+            "--threads",
+            &prep.learner_threads.to_string(),
+        ]));
+        args.push(if prep.resume { "--resume" } else { "--run-dir" }.into());
+        args.push(run_dir);
+        let mut learner = launcher.spawn("learner", "learner", args)?;
+        let line = learner.ready_line(READY_TIMEOUT).await?;
+        let Some(learner_addr) = ready_field(&line, "grpc") else {
+            bail!("unexpected ready line from the learner: {line:?}");
+        };
+        let learner_url = format!("http://{learner_addr}");
+        println!("dashboard: {dashboard}");
+        eprintln!("curriculum server at {curriculum_url}, learner at {learner_url}");
+
+        let curriculum =
+            CurriculumClient::new(channel(&curriculum_url)?).max_decoding_message_size(64 << 20);
+        let learner_client = LearnerClient::new(channel(&learner_url)?);
+
+        // Actors: ids 0.. for training, then the eval actors.
+        let s = &cfg.service;
+        let mut actors = Vec::new();
+        for (i, envs) in split_envs(cfg.env.num_envs, s.num_actors)
+            .into_iter()
+            .enumerate()
+        {
+            actors.push((i as u32, false, envs));
+        }
+        if s.num_eval_actors > 0 {
+            for (j, envs) in split_envs(cfg.eval_env.num_envs, s.num_eval_actors)
+                .into_iter()
+                .enumerate()
+            {
+                actors.push((s.num_actors + j as u32, true, envs));
+            }
+        }
+        let episodes_needed = rfcl_actor::eval::episodes_per_eval(cfg);
+        let evals = EvalTracker::new(episodes_needed, &prep.progress.evals);
+        let bar = Bar::new(cfg.train.steps);
+        let mut session = Session {
+            launcher,
+            server,
+            learner: Some(learner),
+            learner_addr: learner_url,
+            curriculum_addr: curriculum_url,
+            dashboard,
+            actors: actors
+                .into_iter()
+                .map(|(id, eval, envs)| ActorProc {
+                    id,
+                    eval,
+                    envs,
+                    child: None,
+                    done: false,
+                })
+                .collect(),
+            curriculum,
+            learner_client,
+            started: Instant::now(),
+            evals,
+            counters: LearnerCounters::default(),
+            last_view: None,
+            respawns: RespawnLimiter::new(5, 120.0),
+            bar,
+            updates_per_s: 0.0,
+            last_health: None,
+            prep,
+        };
+        for i in 0..session.actors.len() {
+            session.spawn_actor(i)?;
+        }
+        session.write_processes()?;
+        Ok(session)
+    }
+
+    fn spawn_actor(&mut self, index: usize) -> Result<()> {
+        let a = &self.actors[index];
+        let name = if a.eval {
+            format!("eval-actor-{}", a.id)
+        } else {
+            format!("actor-{}", a.id)
+        };
+        let mut args = os(&[
+            "--connect",
+            &self.learner_addr,
+            "--envs",
+            &a.envs.to_string(),
+            "--id",
+            &a.id.to_string(),
+        ]);
+        if a.eval {
+            args.push("--eval".into());
+        }
+        let child = self.launcher.spawn(&name, "actor", args)?;
+        self.actors[index].child = Some(child);
+        Ok(())
+    }
+
+    fn wall_s(&self) -> f64 {
+        self.prep.progress.earlier_sessions_s + self.started.elapsed().as_secs_f64()
+    }
+
+    /// `RUN_DIR/processes.json`: the services' addresses and every running child's name and pid
+    /// (removed when the session ends).
+    fn write_processes(&self) -> Result<()> {
+        let mut list = vec![serde_json::json!({"name": self.server.name, "pid": self.server.pid})];
+        if let Some(l) = &self.learner {
+            list.push(serde_json::json!({"name": l.name, "pid": l.pid}));
+        }
+        for a in &self.actors {
+            if let Some(c) = &a.child {
+                list.push(serde_json::json!({"name": c.name, "pid": c.pid, "actor_id": a.id, "eval": a.eval}));
+            }
+        }
+        let doc = serde_json::json!({
+            "rfcl_pid": std::process::id(),
+            "curriculum": self.curriculum_addr,
+            "dashboard": self.dashboard,
+            "learner": self.learner_addr,
+            "children": list,
+        });
+        write_json(&self.prep.run_dir.join("processes.json"), &doc)
+    }
+
+    /// Watches the children and the run's progress until the run ends, fails or is interrupted.
+    async fn supervise(&mut self) -> Result<Ending> {
+        use tokio::signal::unix::{signal, SignalKind};
+        let mut interrupt = signal(SignalKind::interrupt()).context("installing SIGINT handler")?;
+        let mut terminate =
+            signal(SignalKind::terminate()).context("installing SIGTERM handler")?;
+        let mut tick = tokio::time::interval(POLL_EVERY);
+        let mut ticks = 0u32;
+        loop {
+            tokio::select! {
+                _ = tick.tick() => {}
+                _ = interrupt.recv() => return Ok(Ending::Interrupted),
+                _ = terminate.recv() => return Ok(Ending::Interrupted),
+            }
+            ticks += 1;
+            if let Some(status) = self.server.try_wait() {
+                bail!(
+                    "the curriculum server exited ({}){}",
+                    describe(Some(status)),
+                    self.server.log_tail()
+                );
+            }
+            if let Some(learner) = self.learner.as_mut() {
+                if let Some(status) = learner.try_wait() {
+                    let tail = learner.log_tail();
+                    self.learner = None;
+                    if status.success() {
+                        return Ok(Ending::Budget);
+                    }
+                    bail!("the learner exited ({}){tail}", describe(Some(status)));
+                }
+            }
+            self.check_actors()?;
+            self.poll_health().await;
+            if ticks % STATE_EVERY == 1 {
+                self.poll_state().await;
+                if self
+                    .evals
+                    .reached(self.prep.cfg.service.stop_at_eval_success)
+                {
+                    return Ok(Ending::EvalSuccess);
+                }
+            }
+            self.draw();
+            if self.actors.iter().filter(|a| !a.eval).all(|a| a.done) {
+                self.bar
+                    .println("every actor finished: the curriculum hands out no more leases");
+                return Ok(Ending::Budget);
+            }
+        }
+    }
+
+    fn check_actors(&mut self) -> Result<()> {
+        let now = self.wall_s();
+        let mut changed = false;
+        for i in 0..self.actors.len() {
+            let Some(child) = self.actors[i].child.as_mut() else {
+                continue;
+            };
+            let Some(status) = child.try_wait() else {
+                continue;
+            };
+            let name = child.name.clone();
+            let tail = child.log_tail();
+            self.actors[i].child = None;
+            changed = true;
+            if status.success() {
+                self.bar.println(format!("{name} finished (exit status 0)"));
+                self.actors[i].done = true;
+                continue;
+            }
+            if !self.respawns.allow(self.actors[i].id, now) {
+                bail!(
+                    "{name} keeps dying ({}); stopping the run{tail}",
+                    describe(Some(status))
+                );
+            }
+            self.spawn_actor(i)?;
+            self.prep.progress.actor_respawns += 1;
+            let pid = self.actors[i].child.as_ref().map_or(0, |c| c.pid);
+            self.bar.println(format!(
+                "{name} died ({}); respawned it (pid {pid}){tail}",
+                describe(Some(status))
+            ));
+        }
+        if changed {
+            self.write_processes()?;
+        }
+        Ok(())
+    }
+
+    async fn poll_health(&mut self) {
+        let mut client = self.learner_client.clone();
+        let Ok(Ok(reply)) =
+            tokio::time::timeout(Duration::from_secs(2), client.health(v1::HealthRequest {})).await
+        else {
+            return;
+        };
+        let h = reply.into_inner();
+        let now = Instant::now();
+        if let Some((t, updates)) = self.last_health {
+            let dt = now.duration_since(t).as_secs_f64();
+            if dt > 0.0 && h.updates >= updates {
+                let rate = (h.updates - updates) as f64 / dt;
+                self.updates_per_s = 0.8 * self.updates_per_s + 0.2 * rate;
+            }
+        }
+        self.last_health = Some((now, h.updates));
+        self.counters = LearnerCounters {
+            env_steps: h.env_steps,
+            updates: h.updates,
+            policy_version: h.policy_version,
+        };
+    }
+
+    async fn fetch_state(&mut self) -> Option<DashboardView> {
+        let mut client = self.curriculum.clone();
+        let reply = tokio::time::timeout(
+            Duration::from_secs(5),
+            client.get_state(v1::GetStateRequest {}),
+        )
+        .await
+        .ok()?
+        .ok()?;
+        serde_json::from_str(&reply.into_inner().json).ok()
+    }
+
+    async fn poll_state(&mut self) {
+        let Some(view) = self.fetch_state().await else {
+            return;
+        };
+        let wall = self.wall_s();
+        for eval in self.evals.update(&view.evals, wall) {
+            self.bar.println(format_eval(&eval));
+            self.prep.progress.evals.push(eval);
+            if let Err(e) = self.save_progress(0.0) {
+                self.bar.println(format!("warning: {e:#}"));
+            }
+        }
+        self.last_view = Some(view);
+    }
+
+    fn save_progress(&self, add_session_s: f64) -> Result<()> {
+        let mut p = self.prep.progress.clone();
+        p.earlier_sessions_s += add_session_s;
+        write_json(&self.prep.run_dir.join(PROGRESS_FILE), &p)
+    }
+
+    fn draw(&self) {
+        let stage = self.last_view.as_ref().map_or(1, |v| v.stage);
+        let eval = self.evals.last().map_or("-".to_string(), |e| {
+            format!("{:.0}%", 100.0 * e.success_at_end)
+        });
+        self.bar.update(
+            self.counters.env_steps,
+            format!(
+                "stage {stage} | eval {eval} | {:.1} upd/s",
+                self.updates_per_s
+            ),
+        );
+    }
+
+    /// Stops every child in order (actors, learner, curriculum server) after taking the
+    /// curriculum's final state, then writes the summary.
+    async fn finish(mut self, ending: Result<Ending>) -> Result<Summary> {
+        if let Some(view) = self.fetch_state().await {
+            let wall = self.wall_s();
+            for eval in self.evals.update(&view.evals, wall) {
+                self.bar.println(format_eval(&eval));
+                self.prep.progress.evals.push(eval);
+            }
+            self.last_view = Some(view);
+        }
+        self.poll_health().await;
+        self.bar.finish();
+        for a in &mut self.actors {
+            if let Some(c) = a.child.as_mut() {
+                c.stop(ACTOR_GRACE).await;
+            }
+        }
+        if let Some(l) = self.learner.as_mut() {
+            l.stop(LEARNER_GRACE).await;
+        }
+        self.server.stop(SERVER_GRACE).await;
+        let _ = std::fs::remove_file(self.prep.run_dir.join("processes.json"));
+        let session_s = self.started.elapsed().as_secs_f64();
+        let wall = self.wall_s();
+        self.save_progress(session_s)?;
+        let ending = ending?;
+        let Some(view) = self.last_view.as_ref() else {
+            bail!("the curriculum server never answered GetState: no summary");
+        };
+        let summary = summarize(
+            view,
+            &self.evals,
+            self.counters,
+            &self.prep.progress,
+            wall,
+            ending,
+        );
+        write_json(&self.prep.run_dir.join("summary.json"), &summary)?;
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+        match ending {
+            Ending::Interrupted => eprintln!(
+                "interrupted: continue with `rfcl train {} --resume {}`",
+                self.prep.config_path.display(),
+                self.prep.run_dir.display()
+            ),
+            Ending::Budget | Ending::EvalSuccess => eprintln!(
+                "run finished ({}); summary in {}",
+                match ending {
+                    Ending::Budget => "step budget used",
+                    _ => "eval success reached",
+                },
+                self.prep.run_dir.join("summary.json").display()
+            ),
+        }
+        Ok(summary)
+    }
+}
+
+fn format_eval(e: &CompleteEval) -> String {
+    format!(
+        "eval at {} env steps (policy v{}): success {:.0}% at the end, {:.0}% once, mean return \
+         {:.1} ({} episodes)",
+        e.env_steps,
+        e.policy_version,
+        100.0 * e.success_at_end,
+        100.0 * e.success_once,
+        e.mean_return,
+        e.episodes
+    )
+}
+
+fn channel(url: &str) -> Result<Channel> {
+    Ok(tonic::transport::Endpoint::from_shared(url.to_string())
+        .with_context(|| format!("invalid address {url}"))?
+        .connect_timeout(Duration::from_secs(3))
+        .connect_lazy())
+}
+
+/// The progress bar on a terminal; a status line every 15 s elsewhere (logs, tests).
+struct Bar {
+    bar: Option<ProgressBar>,
+    total: u64,
+    last_line: std::cell::Cell<Option<Instant>>,
+}
+
+impl Bar {
+    fn new(total: u64) -> Self {
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let bar = ProgressBar::new(total);
+            bar.set_style(
+                ProgressStyle::with_template(
+                    "{bar:30.cyan/blue} {human_pos}/{human_len} env steps | {msg} | \
+                     {elapsed_precise} elapsed, ETA {eta}",
+                )
+                .expect("a valid template"),
+            );
+            bar
+        });
+        Self {
+            bar,
+            total,
+            last_line: std::cell::Cell::new(None),
+        }
+    }
+
+    fn update(&self, env_steps: u64, msg: String) {
+        match &self.bar {
+            Some(bar) => {
+                bar.set_position(env_steps.min(self.total));
+                bar.set_message(msg);
+            }
+            None => {
+                let due = self
+                    .last_line
+                    .get()
+                    .is_none_or(|t| t.elapsed() >= Duration::from_secs(15));
+                if due {
+                    self.last_line.set(Some(Instant::now()));
+                    eprintln!("{env_steps}/{} env steps | {msg}", self.total);
+                }
+            }
+        }
+    }
+
+    fn println(&self, line: impl AsRef<str>) {
+        match &self.bar {
+            Some(bar) => bar.println(line.as_ref()),
+            None => eprintln!("{}", line.as_ref()),
+        }
+    }
+
+    fn finish(&self) {
+        if let Some(bar) = &self.bar {
+            bar.finish_and_clear();
+        }
+    }
+}

@@ -1,0 +1,417 @@
+//! The pure bookkeeping of `rfcl train`: which evaluations are complete, when the run may stop
+//! early, and the run summary (ARCHITECTURE.md, "Run directory": steps and wall time to each
+//! success threshold, stage-1 length, final success rates). No I/O: the orchestrator feeds it the
+//! curriculum server's state and the wall clock.
+use std::collections::BTreeMap;
+
+use rfcl_curriculum::dashboard::{DashboardView, EvalPoint};
+use serde::{Deserialize, Serialize};
+
+/// Evals whose running mean decides an early stop (`service.stop_at_eval_success`).
+pub const STOP_WINDOW: usize = 5;
+/// Success thresholds reported in the summary.
+pub const THRESHOLDS: [f64; 2] = [0.5, 0.9];
+
+/// One complete evaluation (spec 5.7): a policy version, the learner's env steps when it was
+/// published, and its outcomes over all its episodes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CompleteEval {
+    pub policy_version: u64,
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub success_at_end: f64,
+    pub success_once: f64,
+    pub mean_return: f64,
+    /// Run wall time (over every session of the run) at which `rfcl train` saw it complete.
+    pub wall_s: f64,
+}
+
+/// What a run keeps across sessions (`RUN_DIR/train_progress.json`): the wall time of earlier
+/// sessions and when each eval completed, so that a resumed run's summary counts wall time
+/// from the run's start.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RunProgress {
+    /// Wall seconds of the sessions before this one.
+    pub earlier_sessions_s: f64,
+    pub sessions: u32,
+    pub evals: Vec<CompleteEval>,
+    pub actor_respawns: u64,
+}
+
+/// Tracks evaluations as the curriculum server aggregates them.
+#[derive(Debug, Clone)]
+pub struct EvalTracker {
+    episodes_needed: u64,
+    complete: BTreeMap<u64, CompleteEval>,
+}
+
+impl EvalTracker {
+    /// An evaluation is complete once `episodes_needed` episodes of it were reported.
+    pub fn new(episodes_needed: u64, earlier: &[CompleteEval]) -> Self {
+        Self {
+            episodes_needed: episodes_needed.max(1),
+            complete: earlier
+                .iter()
+                .map(|e| (e.policy_version, e.clone()))
+                .collect(),
+        }
+    }
+
+    /// Takes the server's eval points; returns the ones that became complete, stamped `wall_s`.
+    pub fn update(&mut self, points: &[EvalPoint], wall_s: f64) -> Vec<CompleteEval> {
+        let mut fresh = Vec::new();
+        for p in points {
+            if p.episodes < self.episodes_needed || self.complete.contains_key(&p.policy_version) {
+                continue;
+            }
+            let eval = CompleteEval {
+                policy_version: p.policy_version,
+                env_steps: p.env_steps,
+                episodes: p.episodes,
+                success_at_end: p.success_at_end,
+                success_once: p.success_once,
+                mean_return: p.mean_return,
+                wall_s,
+            };
+            self.complete.insert(p.policy_version, eval.clone());
+            fresh.push(eval);
+        }
+        fresh
+    }
+
+    /// Complete evals in env-step order.
+    pub fn evals(&self) -> Vec<CompleteEval> {
+        let mut all: Vec<CompleteEval> = self.complete.values().cloned().collect();
+        all.sort_by_key(|e| (e.env_steps, e.policy_version));
+        all
+    }
+
+    /// Mean success-at-end of the last [`STOP_WINDOW`] complete evals, once there are that many.
+    pub fn running_mean(&self) -> Option<f64> {
+        let evals = self.evals();
+        (evals.len() >= STOP_WINDOW).then(|| {
+            evals[evals.len() - STOP_WINDOW..]
+                .iter()
+                .map(|e| e.success_at_end)
+                .sum::<f64>()
+                / STOP_WINDOW as f64
+        })
+    }
+
+    /// Whether the run reached `service.stop_at_eval_success`.
+    pub fn reached(&self, stop_at: Option<f64>) -> bool {
+        match (stop_at, self.running_mean()) {
+            (Some(bar), Some(mean)) => mean >= bar,
+            _ => false,
+        }
+    }
+
+    /// The first complete eval (by env steps) whose success-at-end reached `threshold`.
+    pub fn first_reaching(&self, threshold: f64) -> Option<CompleteEval> {
+        self.evals()
+            .into_iter()
+            .find(|e| e.success_at_end >= threshold)
+    }
+
+    pub fn last(&self) -> Option<CompleteEval> {
+        self.evals().pop()
+    }
+}
+
+/// When the run reached a success threshold.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Milestone {
+    pub threshold: f64,
+    pub env_steps: Option<u64>,
+    pub wall_s: Option<f64>,
+    pub policy_version: Option<u64>,
+}
+
+/// How a session ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Ending {
+    /// The learner used the step budget (`train.steps`) and exited.
+    Budget,
+    /// The running mean of the last evals reached `service.stop_at_eval_success`.
+    EvalSuccess,
+    /// Ctrl-C or SIGTERM: resume with `--resume`.
+    Interrupted,
+}
+
+/// `RUN_DIR/summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    pub run_name: String,
+    pub env_id: String,
+    pub ending: Ending,
+    /// Env steps the learner received (its Health), and its critic updates.
+    pub env_steps: u64,
+    pub updates: u64,
+    pub policy_version: u64,
+    pub wall_s: f64,
+    pub sessions: u32,
+    /// Env steps when stage 1 ended (the curriculum's `stage_1_env_steps`), if it did.
+    pub stage_1_env_steps: Option<u64>,
+    pub stage: u32,
+    /// Env steps and wall time to 50 % and 90 % eval success (success at the end, spec 5.7).
+    pub to_success: Vec<Milestone>,
+    pub final_eval: Option<CompleteEval>,
+    pub eval_success_mean_last_5: Option<f64>,
+    /// Success at the end of the last 100 training episodes.
+    pub train_success_rate: Option<f64>,
+    /// The curriculum server's counters: train episodes and their env steps, leases.
+    pub curriculum_episodes: u64,
+    pub curriculum_env_steps: u64,
+    pub expired_leases: u64,
+    pub refused_reports: u64,
+    pub actor_respawns: u64,
+    pub evals: Vec<CompleteEval>,
+}
+
+/// The learner's counters as `rfcl train` last saw them.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LearnerCounters {
+    pub env_steps: u64,
+    pub updates: u64,
+    pub policy_version: u64,
+}
+
+/// Builds the summary of a run from its trackers and the curriculum server's last state.
+pub fn summarize(
+    view: &DashboardView,
+    evals: &EvalTracker,
+    learner: LearnerCounters,
+    progress: &RunProgress,
+    wall_s: f64,
+    ending: Ending,
+) -> Summary {
+    let to_success = THRESHOLDS
+        .iter()
+        .map(|&threshold| {
+            let hit = evals.first_reaching(threshold);
+            Milestone {
+                threshold,
+                env_steps: hit.as_ref().map(|e| e.env_steps),
+                wall_s: hit.as_ref().map(|e| e.wall_s),
+                policy_version: hit.as_ref().map(|e| e.policy_version),
+            }
+        })
+        .collect();
+    let r = view.refused_reports;
+    Summary {
+        run_name: view.run_name.clone(),
+        env_id: view.env_id.clone(),
+        ending,
+        env_steps: learner.env_steps,
+        updates: learner.updates,
+        policy_version: learner.policy_version,
+        wall_s,
+        sessions: progress.sessions,
+        stage_1_env_steps: view.stage_1_env_steps,
+        stage: view.stage,
+        to_success,
+        final_eval: evals.last(),
+        eval_success_mean_last_5: evals.running_mean(),
+        train_success_rate: view.history.last().map(|p| p.train_success_rate),
+        curriculum_episodes: view.episodes,
+        curriculum_env_steps: view.env_steps,
+        expired_leases: view.expired_leases,
+        refused_reports: r.duplicate + r.expired + r.unknown + r.epoch_mismatch + r.malformed,
+        actor_respawns: progress.actor_respawns,
+        evals: evals.evals(),
+    }
+}
+
+/// `total` envs split over `parts` processes as evenly as possible (the first ones get one more).
+pub fn split_envs(total: u32, parts: u32) -> Vec<u32> {
+    (0..parts)
+        .map(|i| total / parts + u32::from(i < total % parts))
+        .collect()
+}
+
+/// Decides whether a dead actor is respawned: at most `max` deaths of one actor within
+/// `window_s` seconds; more means it cannot run, and the run stops with its error.
+#[derive(Debug, Clone)]
+pub struct RespawnLimiter {
+    max: usize,
+    window_s: f64,
+    deaths: BTreeMap<u32, Vec<f64>>,
+}
+
+impl RespawnLimiter {
+    pub fn new(max: usize, window_s: f64) -> Self {
+        Self {
+            max,
+            window_s,
+            deaths: BTreeMap::new(),
+        }
+    }
+
+    /// Records a death of actor `id` at `now`; true when it may be respawned.
+    pub fn allow(&mut self, id: u32, now: f64) -> bool {
+        let deaths = self.deaths.entry(id).or_default();
+        deaths.retain(|t| now - t < self.window_s);
+        deaths.push(now);
+        deaths.len() <= self.max
+    }
+}
+
+/// The address in a service's ready line: `<name> ready grpc=ADDR dashboard=URL`.
+pub fn ready_field(line: &str, key: &str) -> Option<String> {
+    line.split_whitespace()
+        .find_map(|w| w.strip_prefix(key)?.strip_prefix('='))
+        .map(str::to_owned)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(version: u64, env_steps: u64, episodes: u64, success: f64) -> EvalPoint {
+        EvalPoint {
+            policy_version: version,
+            env_steps,
+            episodes,
+            success_at_end: success,
+            success_once: success,
+            mean_return: success * 10.0,
+        }
+    }
+
+    #[test]
+    fn evals_complete_once_with_enough_episodes() {
+        let mut t = EvalTracker::new(10, &[]);
+        assert!(t.update(&[point(3, 3000, 4, 0.0)], 1.0).is_empty());
+        let fresh = t.update(&[point(3, 3000, 10, 0.2), point(5, 5000, 9, 1.0)], 2.0);
+        assert_eq!(fresh.len(), 1);
+        assert_eq!((fresh[0].policy_version, fresh[0].wall_s), (3, 2.0));
+        // Seen again (more episodes): not new, and the recorded time stays.
+        assert!(t.update(&[point(3, 3000, 12, 0.3)], 3.0).is_empty());
+        assert_eq!(t.evals()[0].wall_s, 2.0);
+    }
+
+    #[test]
+    fn early_stop_needs_five_evals_whose_mean_reaches_the_bar() {
+        let mut t = EvalTracker::new(1, &[]);
+        let successes = [0.0, 0.6, 1.0, 1.0, 1.0, 0.9, 1.0];
+        for (i, s) in successes.iter().enumerate() {
+            t.update(
+                &[point(i as u64 + 1, 1000 * (i as u64 + 1), 5, *s)],
+                i as f64,
+            );
+            let expected = match i {
+                0..=3 => None,
+                4 => Some((0.0 + 0.6 + 3.0) / 5.0),
+                5 => Some((0.6 + 3.0 + 0.9) / 5.0),
+                _ => Some((3.0 + 0.9 + 1.0) / 5.0),
+            };
+            let mean = t.running_mean();
+            assert_eq!(mean.is_some(), expected.is_some(), "eval {i}");
+            if let (Some(m), Some(e)) = (mean, expected) {
+                assert!((m - e).abs() < 1e-12, "eval {i}: {m} vs {e}");
+            }
+        }
+        assert!(t.reached(Some(0.9)));
+        assert!(!t.reached(Some(0.99)));
+        assert!(!t.reached(None));
+        let first90 = t.first_reaching(0.9).unwrap();
+        assert_eq!((first90.policy_version, first90.env_steps), (3, 3000));
+        assert_eq!(t.first_reaching(0.5).unwrap().policy_version, 2);
+    }
+
+    #[test]
+    fn a_resumed_tracker_keeps_earlier_evals_and_their_times() {
+        let earlier = vec![CompleteEval {
+            policy_version: 2,
+            env_steps: 2000,
+            episodes: 10,
+            success_at_end: 0.95,
+            success_once: 1.0,
+            mean_return: 3.0,
+            wall_s: 42.0,
+        }];
+        let mut t = EvalTracker::new(10, &earlier);
+        assert!(t.update(&[point(2, 2000, 10, 0.95)], 100.0).is_empty());
+        assert_eq!(t.first_reaching(0.9).unwrap().wall_s, 42.0);
+    }
+
+    #[test]
+    fn summary_reports_milestones_and_counters() {
+        let mut t = EvalTracker::new(2, &[]);
+        t.update(
+            &[
+                point(1, 1000, 2, 0.1),
+                point(2, 2000, 2, 0.55),
+                point(3, 3000, 2, 0.92),
+            ],
+            7.0,
+        );
+        let view: DashboardView = serde_json::from_value(serde_json::json!({
+            "run_name": "r", "env_id": "PointMaze-v0", "stage": 2, "stage_epoch": 1,
+            "env_steps": 2900, "stage_1_env_steps": 1500, "episodes": 100, "episodes_per_s": 1.0,
+            "open_leases": 3, "expired_leases": 4,
+            "refused_reports": {"duplicate": 1, "expired": 2, "unknown": 0, "epoch_mismatch": 3, "malformed": 0},
+            "solved_frac": 1.0, "demos": [], "levels": [], "actors": [], "evals": [],
+            "history": [{"wall_s": 1.0, "env_steps": 2900, "stage": 2, "start_step_frac_avg": 0.0,
+                          "solved_frac": 1.0, "train_success_rate": 0.75}],
+        }))
+        .unwrap();
+        let progress = RunProgress {
+            sessions: 2,
+            actor_respawns: 1,
+            ..RunProgress::default()
+        };
+        let learner = LearnerCounters {
+            env_steps: 3100,
+            updates: 1550,
+            policy_version: 40,
+        };
+        let s = summarize(&view, &t, learner, &progress, 60.0, Ending::Budget);
+        assert_eq!(s.stage_1_env_steps, Some(1500));
+        assert_eq!(s.to_success[0].env_steps, Some(2000));
+        assert_eq!(s.to_success[1].env_steps, Some(3000));
+        assert_eq!(s.to_success[1].wall_s, Some(7.0));
+        assert_eq!(s.final_eval.as_ref().unwrap().policy_version, 3);
+        assert_eq!(s.eval_success_mean_last_5, None);
+        assert_eq!(s.train_success_rate, Some(0.75));
+        assert_eq!((s.expired_leases, s.refused_reports), (4, 6));
+        assert_eq!((s.env_steps, s.updates, s.actor_respawns), (3100, 1550, 1));
+        let json = serde_json::to_value(&s).unwrap();
+        assert_eq!(json["ending"], "budget");
+        assert_eq!(json["to_success"][1]["threshold"], 0.9);
+    }
+
+    #[test]
+    fn envs_split_evenly() {
+        assert_eq!(split_envs(8, 2), [4, 4]);
+        assert_eq!(split_envs(8, 3), [3, 3, 2]);
+        assert_eq!(split_envs(4, 1), [4]);
+    }
+
+    #[test]
+    fn an_actor_that_keeps_dying_is_not_respawned() {
+        let mut r = RespawnLimiter::new(3, 60.0);
+        assert!(r.allow(1, 0.0));
+        assert!(r.allow(1, 10.0));
+        assert!(r.allow(2, 10.0));
+        assert!(r.allow(1, 20.0));
+        assert!(!r.allow(1, 30.0), "a fourth death within a minute");
+        assert!(r.allow(1, 200.0), "old deaths are forgotten");
+    }
+
+    #[test]
+    fn ready_lines_parse() {
+        let line = "curriculum-server ready grpc=127.0.0.1:4000 dashboard=http://127.0.0.1:4001/";
+        assert_eq!(ready_field(line, "grpc").unwrap(), "127.0.0.1:4000");
+        assert_eq!(
+            ready_field(line, "dashboard").unwrap(),
+            "http://127.0.0.1:4001/"
+        );
+        assert_eq!(
+            ready_field("learner ready grpc=127.0.0.1:9", "grpc").unwrap(),
+            "127.0.0.1:9"
+        );
+        assert_eq!(ready_field("learner ready", "grpc"), None);
+    }
+}

@@ -1,0 +1,97 @@
+//! `rfcl train configs/pointmaze_test.yml` end to end, with real binaries on loopback: PointMaze
+//! from 5 generated demos reaches its eval-success bar (`service.stop_at_eval_success`, 0.9) on
+//! the true initial-state distribution; the summary, the run directory and the processes' own
+//! counters (learner Health, curriculum GetState) show that transitions and leases flowed; no
+//! child outlives the run; `rfcl eval` runs the exported policy.
+mod train_support;
+
+use std::time::Duration;
+
+use train_support::*;
+
+#[test]
+fn pointmaze_test_config_reaches_90_percent_eval_success() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let demos = generate_demos(dir.path());
+    let run_dir = dir.path().join("run");
+    let mut training = Training::start(
+        &[
+            test_config().display().to_string(),
+            format!("train.dataset_path={}", demos.display()),
+            "--run-dir".into(),
+            run_dir.display().to_string(),
+        ],
+        &run_dir,
+        &dir.path().join("rfcl.stderr"),
+    );
+
+    // While it runs: every child is up, and the learner and the curriculum server count the
+    // transitions and episodes the actors send.
+    let processes = training.processes(Duration::from_secs(120));
+    let pids = child_pids(&processes);
+    assert_eq!(
+        pids.len(),
+        2 + 2 + 1,
+        "server, learner, 2 actors, 1 eval actor"
+    );
+    assert!(processes["dashboard"]
+        .as_str()
+        .unwrap()
+        .starts_with("http://127.0.0.1:"));
+    let flowing = wait_for(Duration::from_secs(120), || {
+        let health = learner_health(&processes)?;
+        let state = curriculum_state(&processes)?;
+        let actors = state["actors"].as_array()?;
+        let train_actors_seen = actors
+            .iter()
+            .filter(|a| a["actor_id"].as_u64() < Some(2) && a["env_steps"].as_u64() > Some(0))
+            .count();
+        (health.env_steps >= 2000
+            && health.updates > 0
+            && state["episodes"].as_u64()? > 0
+            && train_actors_seen == 2)
+            .then_some((health, state))
+    });
+    let (health, state) = flowing.unwrap_or_else(|| panic!("no progress:\n{}", training.stderr()));
+    assert!(health.ok && health.policy_version > 1, "{health:?}");
+    assert_eq!(state["stage"], 1, "a fresh run starts in stage 1");
+
+    let status = training.wait(Duration::from_secs(900));
+    let stderr = training.stderr();
+    assert!(status.success(), "{status}:\n{stderr}");
+    assert!(
+        stderr.contains("run finished (eval success reached)"),
+        "{stderr}"
+    );
+    let stdout = training.stdout.lock().unwrap().join("\n");
+    assert!(stdout.contains("dashboard: http://127.0.0.1:"), "{stdout}");
+    let summary = training.summary();
+    assert_reached(&summary, 0.9);
+    assert_eq!(summary["sessions"], 1);
+    assert_eq!(summary["expired_leases"], 0, "no actor died");
+    assert_eq!(summary["actor_respawns"], 0);
+
+    // The run directory, and no child left behind.
+    for file in [
+        "config.yml",
+        "summary.json",
+        "train_progress.json",
+        "curriculum.snapshot.json",
+        "policy.safetensors",
+        "logs/learner.log",
+        "logs/actor-0.log",
+        "logs/eval-actor-2.log",
+    ] {
+        assert!(run_dir.join(file).is_file(), "{file} missing");
+    }
+    assert!(!run_dir.join("processes.json").exists());
+    for pid in pids {
+        assert!(!alive(pid), "child {pid} outlived the run");
+    }
+
+    // The exported policy on held-out seeds, in-process: deterministic, one episode per cell.
+    let (success, line) = eval_run(&run_dir, 34);
+    assert!(line.contains("34 episodes from held-out seeds"), "{line}");
+    assert!(success >= 0.7, "{line}");
+}

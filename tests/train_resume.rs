@@ -1,0 +1,91 @@
+//! A run stopped with SIGINT (Ctrl-C) stops every child cleanly, exits 130 and writes its summary;
+//! `rfcl train --resume RUN_DIR` continues it (curriculum snapshot, learner checkpoint) to its bar,
+//! counting wall time and evals over both sessions.
+mod train_support;
+
+use std::time::Duration;
+
+use train_support::*;
+
+#[test]
+fn sigint_then_resume_runs_to_completion() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let demos = generate_demos(dir.path());
+    let run_dir = dir.path().join("run");
+    let mut first = Training::start(
+        &[
+            test_config().display().to_string(),
+            format!("train.dataset_path={}", demos.display()),
+            "--run-dir".into(),
+            run_dir.display().to_string(),
+        ],
+        &run_dir,
+        &dir.path().join("first.stderr"),
+    );
+    let processes = first.processes(Duration::from_secs(120));
+    // Stop after the first complete evaluation.
+    let progress = run_dir.join("train_progress.json");
+    wait_for(Duration::from_secs(300), || {
+        let p: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&progress).ok()?).ok()?;
+        (!p["evals"].as_array()?.is_empty()).then_some(())
+    })
+    .unwrap_or_else(|| panic!("no eval:\n{}", first.stderr()));
+    signal(first.pid(), rustix::process::Signal::INT);
+    let status = first.wait(Duration::from_secs(180));
+    assert_eq!(status.code(), Some(130), "{}", first.stderr());
+    let stopped = first.summary();
+    assert_eq!(stopped["ending"], "interrupted");
+    assert!(first.stderr().contains("--resume"), "says how to continue");
+    for pid in child_pids(&processes) {
+        assert!(!alive(pid), "child {pid} outlived the interrupted session");
+    }
+    assert!(
+        run_dir.join("checkpoint").is_dir(),
+        "the learner checkpointed"
+    );
+    let steps_before = stopped["env_steps"].as_u64().unwrap();
+    let episodes_before = stopped["curriculum_episodes"].as_u64().unwrap();
+    assert!(steps_before > 0 && episodes_before > 0);
+
+    let mut resumed = Training::start(
+        &[
+            test_config().display().to_string(),
+            "--resume".into(),
+            run_dir.display().to_string(),
+        ],
+        &run_dir,
+        &dir.path().join("resumed.stderr"),
+    );
+    // The services continue from where they stopped, not from zero.
+    let processes = resumed.processes(Duration::from_secs(180));
+    let (health, state) = wait_for(Duration::from_secs(60), || {
+        Some((learner_health(&processes)?, curriculum_state(&processes)?))
+    })
+    .unwrap_or_else(|| panic!("services not answering:\n{}", resumed.stderr()));
+    assert!(
+        health.env_steps >= steps_before,
+        "{health:?} vs {steps_before}"
+    );
+    assert!(state["episodes"].as_u64().unwrap() >= episodes_before);
+
+    let status = resumed.wait(Duration::from_secs(900));
+    assert!(status.success(), "{status}:\n{}", resumed.stderr());
+    let summary = resumed.summary();
+    assert_reached(&summary, 0.9);
+    assert_eq!(summary["sessions"], 2);
+    assert!(summary["env_steps"].as_u64().unwrap() > steps_before);
+    assert!(summary["wall_s"].as_f64().unwrap() > stopped["wall_s"].as_f64().unwrap());
+    // The first session's evals are kept, with their times.
+    let first_eval = &stopped["evals"][0];
+    assert!(
+        summary["evals"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|e| e == first_eval),
+        "{first_eval} missing from {:#}",
+        summary["evals"]
+    );
+}

@@ -1,0 +1,315 @@
+//! Shared by the whole-run tests (`tests/train_*.rs`): demos made by `rfcl demos generate`, `rfcl
+//! train` as a child process, and the running services' own counters read over gRPC.
+//!
+//! No demo file is ever opened in a test process: the demos are written by the `rfcl` child, so no
+//! HDF5 handle (opened without O_CLOEXEC, with a flock) can leak into a forked child.
+#![allow(dead_code)]
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use rfcl_proto::v1;
+use rfcl_proto::v1::curriculum_client::CurriculumClient;
+use rfcl_proto::v1::learner_client::LearnerClient;
+use serde_json::Value;
+
+/// The documented fast test config.
+pub fn test_config() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/pointmaze_test.yml")
+}
+
+fn rfcl() -> &'static str {
+    env!("CARGO_BIN_EXE_rfcl")
+}
+
+/// The services `rfcl train` starts must be built next to `rfcl`.
+pub fn require_services() {
+    let dir = Path::new(rfcl()).parent().unwrap();
+    for name in ["curriculum-server", "learner", "actor"] {
+        assert!(
+            dir.join(name).is_file(),
+            "{} is not built: run `cargo build --release --workspace` (cargo nextest run \
+             --workspace builds every binary)",
+            dir.join(name).display()
+        );
+    }
+}
+
+/// 5 PointMaze demos in `dir`, written by `rfcl demos generate`.
+pub fn generate_demos(dir: &Path) -> PathBuf {
+    let out = dir.join("demos.h5");
+    let status = Command::new(rfcl())
+        .args([
+            "demos",
+            "generate",
+            "--env",
+            "pointmaze",
+            "-n",
+            "5",
+            "--out",
+        ])
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(status.success(), "rfcl demos generate failed");
+    out
+}
+
+/// A running `rfcl train`: stdout lines are collected, stderr goes to a file.
+pub struct Training {
+    child: Option<Child>,
+    pub stdout: Arc<Mutex<Vec<String>>>,
+    pub stderr_path: PathBuf,
+    pub run_dir: PathBuf,
+}
+
+impl Training {
+    /// `rfcl train <args>`; `run_dir` is where the run lives (for the helpers).
+    pub fn start(args: &[String], run_dir: &Path, log: &Path) -> Training {
+        let stderr = std::fs::File::create(log).unwrap();
+        let mut child = Command::new(rfcl())
+            .arg("train")
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(stderr)
+            .spawn()
+            .unwrap();
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let sink = lines.clone();
+        let stdout = child.stdout.take().unwrap();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                sink.lock().unwrap().push(line);
+            }
+        });
+        Training {
+            child: Some(child),
+            stdout: lines,
+            stderr_path: log.to_path_buf(),
+            run_dir: run_dir.to_path_buf(),
+        }
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().unwrap().id()
+    }
+
+    pub fn stderr(&self) -> String {
+        std::fs::read_to_string(&self.stderr_path).unwrap_or_default()
+    }
+
+    pub fn exited(&mut self) -> Option<ExitStatus> {
+        self.child.as_mut().unwrap().try_wait().unwrap()
+    }
+
+    /// Waits for the exit; panics with rfcl's stderr after `limit`.
+    pub fn wait(&mut self, limit: Duration) -> ExitStatus {
+        let until = Instant::now() + limit;
+        loop {
+            if let Some(status) = self.exited() {
+                return status;
+            }
+            if Instant::now() > until {
+                panic!(
+                    "rfcl train did not finish within {limit:?}; its stderr:\n{}",
+                    self.stderr()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// `RUN_DIR/processes.json` once the session has started all its children.
+    pub fn processes(&self, limit: Duration) -> Value {
+        let path = self.run_dir.join("processes.json");
+        let until = Instant::now() + limit;
+        loop {
+            if let Some(v) = std::fs::read_to_string(&path)
+                .ok()
+                .and_then(|t| serde_json::from_str::<Value>(&t).ok())
+            {
+                return v;
+            }
+            assert!(
+                Instant::now() < until,
+                "no processes.json within {limit:?}:\n{}",
+                self.stderr()
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    pub fn summary(&self) -> Value {
+        let path = self.run_dir.join("summary.json");
+        let text = std::fs::read_to_string(&path)
+            .unwrap_or_else(|e| panic!("{}: {e}\n{}", path.display(), self.stderr()));
+        serde_json::from_str(&text).unwrap()
+    }
+}
+
+impl Drop for Training {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            if child.try_wait().ok().flatten().is_none() {
+                // rfcl stops its children on SIGTERM.
+                signal(child.id(), rustix::process::Signal::TERM);
+                let until = Instant::now() + Duration::from_secs(60);
+                while child.try_wait().ok().flatten().is_none() && Instant::now() < until {
+                    std::thread::sleep(Duration::from_millis(100));
+                }
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+    }
+}
+
+pub fn signal(pid: u32, signal: rustix::process::Signal) {
+    if let Some(pid) = rustix::process::Pid::from_raw(pid as i32) {
+        let _ = rustix::process::kill_process(pid, signal);
+    }
+}
+
+/// Whether `pid` is a live process (not gone, not a zombie).
+pub fn alive(pid: u64) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Ok(stat) => stat
+            .rsplit(')')
+            .next()
+            .and_then(|rest| rest.split_whitespace().next())
+            .is_some_and(|state| state != "Z" && state != "X"),
+        Err(_) => false,
+    }
+}
+
+/// Every pid in a processes.json.
+pub fn child_pids(processes: &Value) -> Vec<u64> {
+    processes["children"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["pid"].as_u64().unwrap())
+        .collect()
+}
+
+/// The pid of child `name` in a processes.json.
+pub fn child_pid(processes: &Value, name: &str) -> u64 {
+    processes["children"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == name)
+        .unwrap_or_else(|| panic!("no {name} in {processes}"))["pid"]
+        .as_u64()
+        .unwrap()
+}
+
+/// The learner's Health (env steps received, critic updates, policy version).
+pub fn learner_health(processes: &Value) -> Option<v1::HealthReply> {
+    let addr = processes["learner"].as_str()?.to_string();
+    block_on(async move {
+        let mut c = LearnerClient::connect(addr).await.ok()?;
+        c.health(v1::HealthRequest {})
+            .await
+            .ok()
+            .map(|r| r.into_inner())
+    })
+}
+
+/// The curriculum server's state (its dashboard JSON).
+pub fn curriculum_state(processes: &Value) -> Option<Value> {
+    let addr = processes["curriculum"].as_str()?.to_string();
+    block_on(async move {
+        let mut c = CurriculumClient::connect(addr).await.ok()?;
+        let json = c
+            .get_state(v1::GetStateRequest {})
+            .await
+            .ok()?
+            .into_inner()
+            .json;
+        serde_json::from_str(&json).ok()
+    })
+}
+
+fn block_on<T>(f: impl std::future::Future<Output = T>) -> T {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(f)
+}
+
+/// Polls `probe` every 250 ms until it returns `Some`, for at most `limit`.
+pub fn wait_for<T>(limit: Duration, mut probe: impl FnMut() -> Option<T>) -> Option<T> {
+    let until = Instant::now() + limit;
+    loop {
+        if let Some(v) = probe() {
+            return Some(v);
+        }
+        if Instant::now() > until {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(250));
+    }
+}
+
+/// `rfcl eval RUN_DIR -n N`: (success at the end, its output line).
+pub fn eval_run(run_dir: &Path, episodes: u32) -> (f64, String) {
+    let out = Command::new(rfcl())
+        .arg("eval")
+        .arg(run_dir)
+        .args(["-n", &episodes.to_string()])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success(),
+        "rfcl eval failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let success = stdout
+        .split("success ")
+        .nth(1)
+        .and_then(|s| s.split('%').next())
+        .and_then(|s| s.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no success rate in {stdout:?}"));
+    (success / 100.0, stdout)
+}
+
+/// The summary's checks every finished run must pass: it reached `bar` by the running mean of its
+/// last 5 evals, the milestones are consistent, and the processes' own counters show that
+/// transitions and leases flowed.
+pub fn assert_reached(summary: &Value, bar: f64) {
+    assert_eq!(summary["ending"], "eval_success", "{summary:#}");
+    let mean = summary["eval_success_mean_last_5"].as_f64().unwrap();
+    assert!(mean >= bar, "mean of the last 5 evals {mean} < {bar}");
+    let evals = summary["evals"].as_array().unwrap();
+    assert!(evals.len() >= 5, "{summary:#}");
+    for e in evals {
+        assert!(e["episodes"].as_u64().unwrap() >= 34, "{e}");
+    }
+    let env_steps = summary["env_steps"].as_u64().unwrap();
+    let updates = summary["updates"].as_u64().unwrap();
+    let curriculum_steps = summary["curriculum_env_steps"].as_u64().unwrap();
+    assert!(env_steps > 0 && updates > 0, "{summary:#}");
+    assert!(summary["curriculum_episodes"].as_u64().unwrap() > 0);
+    // What the curriculum saw reported and what the learner received agree, up to the episodes
+    // in flight (8 envs × 300 steps) and those whose leases were lost.
+    assert!(
+        curriculum_steps <= env_steps + 8 * 300 && curriculum_steps * 10 >= env_steps * 9,
+        "curriculum {curriculum_steps} vs learner {env_steps} env steps"
+    );
+    // The first eval at or above each threshold, by env steps; 90 % after (or with) 50 %.
+    let m50 = &summary["to_success"][0];
+    let m90 = &summary["to_success"][1];
+    assert_eq!(m50["threshold"], 0.5);
+    let (s50, s90) = (
+        m50["env_steps"].as_u64().unwrap(),
+        m90["env_steps"].as_u64().unwrap(),
+    );
+    assert!(s50 <= s90 && s90 <= env_steps, "{summary:#}");
+    assert!(m90["wall_s"].as_f64().unwrap() <= summary["wall_s"].as_f64().unwrap());
+}
