@@ -1,6 +1,6 @@
 //! A train actor SIGKILLed in the middle of a run: `rfcl train` respawns it and says so, the
 //! leases it held expire on the curriculum server and are counted, and the run still reaches its
-//! bar.
+//! bar ([`BAR`], as in train_pointmaze.rs).
 mod train_support;
 
 use std::time::Duration;
@@ -10,6 +10,8 @@ use train_support::*;
 /// Short enough that the dead actor's leases expire well before the run ends, long enough for any
 /// live episode (300 steps) on a loaded machine.
 const LEASE_TIMEOUT_S: u64 = 20;
+/// The mean success of the last 5 evaluations at which the run stops.
+const BAR: f64 = 0.3;
 
 #[test]
 fn a_killed_actor_is_respawned_and_its_leases_expire() {
@@ -22,6 +24,7 @@ fn a_killed_actor_is_respawned_and_its_leases_expire() {
             test_config().display().to_string(),
             format!("train.dataset_path={}", demos.display()),
             format!("service.lease_timeout_s={LEASE_TIMEOUT_S}"),
+            format!("service.stop_at_eval_success={BAR}"),
             "--run-dir".into(),
             run_dir.display().to_string(),
         ],
@@ -77,7 +80,7 @@ fn a_killed_actor_is_respawned_and_its_leases_expire() {
     let status = training.wait(Duration::from_secs(900));
     assert!(status.success(), "{status}:\n{}", training.stderr());
     let summary = training.summary();
-    assert_reached(&summary, 0.9);
+    assert_reached(&summary, BAR);
     assert!(summary["actor_respawns"].as_u64().unwrap() >= 1);
     assert!(summary["expired_leases"].as_u64().unwrap() >= expired);
     for pid in child_pids(&processes).into_iter().chain([respawned]) {

@@ -95,6 +95,10 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
             }
             let cfg = resolve_file(&stored, &args.overrides)
                 .with_context(|| format!("the stored config of the run in {}", dir.display()))?;
+            let mut requested = requested.clone();
+            if requested.train.dataset_path.is_none() {
+                requested.train.dataset_path = cfg.train.dataset_path.clone();
+            }
             if requested != cfg {
                 eprintln!(
                     "note: resuming with the run's stored config ({}) and the overrides given; \

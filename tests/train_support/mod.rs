@@ -302,14 +302,18 @@ pub fn assert_reached(summary: &Value, bar: f64) {
         curriculum_steps <= env_steps + 8 * 300 && curriculum_steps * 10 >= env_steps * 9,
         "curriculum {curriculum_steps} vs learner {env_steps} env steps"
     );
-    // The first eval at or above each threshold, by env steps; 90 % after (or with) 50 %.
-    let m50 = &summary["to_success"][0];
-    let m90 = &summary["to_success"][1];
-    assert_eq!(m50["threshold"], 0.5);
-    let (s50, s90) = (
-        m50["env_steps"].as_u64().unwrap(),
-        m90["env_steps"].as_u64().unwrap(),
-    );
-    assert!(s50 <= s90 && s90 <= env_steps, "{summary:#}");
-    assert!(m90["wall_s"].as_f64().unwrap() <= summary["wall_s"].as_f64().unwrap());
+    // The first eval at or above each threshold the run passed, by env steps, within the run.
+    let mut previous = 0;
+    for m in summary["to_success"].as_array().unwrap() {
+        let threshold = m["threshold"].as_f64().unwrap();
+        match m["env_steps"].as_u64() {
+            Some(steps) => {
+                assert!(previous <= steps && steps <= env_steps, "{summary:#}");
+                assert!(m["wall_s"].as_f64().unwrap() <= summary["wall_s"].as_f64().unwrap());
+                previous = steps;
+            }
+            // The mean of the last 5 reached the bar, so one of them did.
+            None => assert!(threshold > bar, "{threshold} not reached: {summary:#}"),
+        }
+    }
 }
