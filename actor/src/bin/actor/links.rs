@@ -168,8 +168,7 @@ impl Curriculum {
         };
         let result = retrying(&self.peer, "ReportAndAcquire", self.retry_for, || {
             let mut c = self.client.clone();
-            let w = wire.clone();
-            async move { c.report_and_acquire(w).await }
+            async move { c.report_and_acquire(wire).await }
         })
         .await?;
         match result {
@@ -213,8 +212,7 @@ impl Curriculum {
         let wire = v1::EpisodeReport::from(report.clone());
         let result = retrying(&self.peer, "Report", self.retry_for, || {
             let mut c = self.client.clone();
-            let w = wire.clone();
-            async move { c.report(w).await }
+            async move { c.report(wire).await }
         })
         .await?;
         match result {
