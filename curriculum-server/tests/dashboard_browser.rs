@@ -35,16 +35,7 @@ fn headless(profile: &std::path::Path) -> Command {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn chromium_renders_the_demo_bars() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path(), 3, 20);
-    let config = write_config(dir.path(), 30.0);
-    let server = ServerProcess::start(&[
-        "--demos",
-        demos.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-        "--run-dir",
-        dir.path().join("run").to_str().unwrap(),
-    ]);
+    let server = ServerProcess::start_fresh(dir.path(), 30.0);
     // Some progress so the page has something to show.
     let mut client = server.client().await;
     for _ in 0..30 {

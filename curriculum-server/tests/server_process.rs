@@ -193,17 +193,7 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_reports_get_clear_statuses_and_change_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path(), 3, 20);
-    let config = write_config(dir.path(), 30.0);
-    let run_dir = dir.path().join("run");
-    let server = ServerProcess::start(&[
-        "--demos",
-        demos.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-        "--run-dir",
-        run_dir.to_str().unwrap(),
-    ]);
+    let server = ServerProcess::start_fresh(dir.path(), 30.0);
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
     let before = curriculum_part(&state_view(&mut client).await);
@@ -324,16 +314,7 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn unreported_leases_expire_and_are_counted() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path(), 3, 20);
-    let config = write_config(dir.path(), 0.3);
-    let server = ServerProcess::start(&[
-        "--demos",
-        demos.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-        "--run-dir",
-        dir.path().join("run").to_str().unwrap(),
-    ]);
+    let server = ServerProcess::start_fresh(dir.path(), 0.3);
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(1)).await.unwrap().into_inner();
     let before = curriculum_part(&state_view(&mut client).await);

@@ -84,6 +84,22 @@ pub struct ServerProcess {
 }
 
 impl ServerProcess {
+    /// Writes 3 demos of 20 steps and the test config into `dir`, then starts a server on them
+    /// with its run directory in `dir/run`.
+    pub fn start_fresh(dir: &Path, lease_timeout_s: f64) -> ServerProcess {
+        let demos = write_demos(dir, 3, 20);
+        let config = write_config(dir, lease_timeout_s);
+        let run_dir = dir.join("run");
+        ServerProcess::start(&[
+            "--demos",
+            demos.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+            "--run-dir",
+            run_dir.to_str().unwrap(),
+        ])
+    }
+
     pub fn start(args: &[&str]) -> ServerProcess {
         let guard = hdf5_fork_guard();
         let mut child = Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
