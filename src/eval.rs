@@ -26,6 +26,36 @@ pub struct EvalReport {
     pub success_once: f64,
     pub mean_return: f64,
     pub mean_length: f64,
+    /// `(seed, success at the end)` of every episode, in order.
+    pub outcomes: Vec<(u64, bool)>,
+}
+
+impl EvalReport {
+    /// For PointMaze: the maze as text with each start cell's success rate as a digit (`9` = 90 %
+    /// or more, `0` = under 10 %, `-` = not visited), the goal `G` and walls `#`.
+    pub fn pointmaze_map(&self) -> String {
+        let maze = rfcl_core::maze::maze();
+        let mut per_cell = std::collections::BTreeMap::<rfcl_core::maze::Cell, (u32, u32)>::new();
+        for &(seed, success) in &self.outcomes {
+            let c = per_cell.entry(maze.seed_cell(seed)).or_default();
+            c.0 += 1;
+            c.1 += u32::from(success);
+        }
+        let mut text = String::new();
+        for (r, line) in rfcl_core::maze::MAP.lines().enumerate() {
+            for (c, ch) in line.chars().enumerate() {
+                text.push(match (ch, per_cell.get(&(r, c))) {
+                    ('.', Some(&(n, ok))) => {
+                        char::from_digit((10 * ok / n.max(1)).min(9), 10).unwrap_or('?')
+                    }
+                    ('.', None) => '-',
+                    (other, _) => other,
+                });
+            }
+            text.push('\n');
+        }
+        text
+    }
 }
 
 /// Runs `episodes` episodes of the run's env from held-out seeds with the run's exported policy.
@@ -90,6 +120,7 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
     let first_seed = cfg.eval_env.seed_offset + HELD_OUT_SEED_BASE;
     let mut out = StepOutput::default();
     let (mut at_end, mut once, mut ret, mut len) = (0u32, 0u32, 0.0f64, 0u64);
+    let mut outcomes = Vec::with_capacity(episodes as usize);
     for k in 0..episodes {
         rollout.begin(
             0,
@@ -113,6 +144,7 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
             out.clear();
             rollout.step(Some(&mut policy), &mut out)?;
             if let Some((_, r)) = out.finished.pop() {
+                outcomes.push((first_seed + u64::from(k), r.success_at_end));
                 at_end += u32::from(r.success_at_end);
                 once += u32::from(r.success_once);
                 ret += r.episode_return;
@@ -130,5 +162,6 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
         success_once: f64::from(once) / n,
         mean_return: ret / n,
         mean_length: len as f64 / n,
+        outcomes,
     })
 }

@@ -5,6 +5,7 @@
 //!   `base_config` inheritance, dotted overrides and validation.
 //! * [`demo`]: demonstration datasets in ManiSkill's trajectory format (HDF5 + JSON sidecar).
 //! * [`lease`]: reset leases and episode reports (the curriculum contract).
+//! * [`maze`]: the fixed PointMaze layout (spec 7.5), for the native env and the dashboard.
 //! * [`transition`]: the one fixed binary layout of a transition record, shared by both transports.
 #![forbid(unsafe_code)]
 
@@ -12,6 +13,7 @@ pub mod atomic;
 pub mod config;
 pub mod demo;
 pub mod lease;
+pub mod maze;
 pub mod transition;
 
 pub use config::RunConfig;

@@ -29,6 +29,37 @@ pub struct DashboardView {
     pub actors: Vec<ActorRow>,
     pub evals: Vec<EvalPoint>,
     pub history: Vec<ProgressPoint>,
+    /// The PointMaze success heatmap (PointMaze runs only).
+    #[serde(default)]
+    pub maze: Option<MazeView>,
+}
+
+/// The PointMaze heatmap (the paper's figure): success per start cell over the run.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MazeView {
+    /// The layout, one string per row (`#` wall, `G` goal, `.` open), as in `rfcl_core::maze::MAP`.
+    pub map: Vec<String>,
+    /// Evals spread over the run, oldest first; the last is the latest complete eval.
+    pub snapshots: Vec<MazeSnapshot>,
+    /// Per demo, the point's `(x, y)` at every step (x = column, y = row).
+    pub demo_paths: Vec<Vec<[f32; 2]>>,
+}
+
+/// Eval success per start cell of one policy version.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MazeSnapshot {
+    pub policy_version: u64,
+    pub env_steps: u64,
+    pub success_rate: f64,
+    pub cells: Vec<MazeCell>,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MazeCell {
+    pub row: u32,
+    pub col: u32,
+    pub episodes: u64,
+    pub successes: u64,
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -148,6 +179,87 @@ pub fn demo_bars_svg(demos: &[DemoBar]) -> String {
                 color.filled(),
             )
         }))?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+/// Side of one maze cell in the heatmap, in pixels.
+const MAZE_CELL_PX: u32 = 16;
+
+/// White at 0, the page's green at 1 (opaque: a transparent colour would not be drawn at all).
+fn success_color(rate: f64) -> RGBColor {
+    let rate = rate.clamp(0.0, 1.0);
+    let lerp = |from: u8, to: u8| (from as f64 + (to as f64 - from as f64) * rate).round() as u8;
+    RGBColor(lerp(255, 26), lerp(255, 127), lerp(255, 55))
+}
+
+/// The PointMaze heatmap: one small maze per snapshot, each start cell shaded from white (never
+/// solved) to green (always solved), walls dark, the goal red, the demos' paths blue (the paper's
+/// figure). Cells without eval episodes stay light grey.
+pub fn maze_heatmap_svg(maze: &MazeView) -> String {
+    let rows = maze.map.len().max(1) as u32;
+    let cols = maze.map.iter().map(|r| r.len()).max().unwrap_or(1).max(1) as u32;
+    let panels = maze.snapshots.len().max(1) as u32;
+    let (caption_h, gap) = (30u32, 12u32);
+    let panel_w = cols * MAZE_CELL_PX;
+    let width = panels * panel_w + (panels + 1) * gap;
+    let height = rows * MAZE_CELL_PX + caption_h + gap;
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (width, height)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let empty = MazeSnapshot::default();
+        let snapshots: Vec<&MazeSnapshot> = if maze.snapshots.is_empty() {
+            vec![&empty]
+        } else {
+            maze.snapshots.iter().collect()
+        };
+        for (p, snap) in snapshots.iter().enumerate() {
+            let x0 = gap as i32 + p as i32 * (panel_w + gap) as i32;
+            let caption = if maze.snapshots.is_empty() {
+                "no eval yet".to_string()
+            } else {
+                format!("{} steps: {:.0}%", snap.env_steps, snap.success_rate * 100.0)
+            };
+            root.draw_text(&caption, &("sans-serif", 12).into_font().color(&BLACK), (x0, 8))?;
+            let grid = root
+                .clone()
+                .shrink((x0, caption_h as i32), (panel_w, rows * MAZE_CELL_PX));
+            let mut chart = ChartBuilder::on(&grid)
+                .build_cartesian_2d(-0.5f32..cols as f32 - 0.5, rows as f32 - 0.5..-0.5f32)?;
+            for (r, line) in maze.map.iter().enumerate() {
+                for (c, ch) in line.chars().enumerate() {
+                    let color = match ch {
+                        '#' => RGBColor(60, 60, 60).filled(),
+                        _ => match snap.cells.iter().find(|m| (m.row, m.col) == (r as u32, c as u32)) {
+                            Some(m) if m.episodes > 0 => {
+                                success_color(m.successes as f64 / m.episodes as f64).filled()
+                            }
+                            _ => RGBColor(235, 235, 235).filled(),
+                        },
+                    };
+                    let (x, y) = (c as f32, r as f32);
+                    chart.draw_series(std::iter::once(Rectangle::new(
+                        [(x - 0.5, y - 0.5), (x + 0.5, y + 0.5)],
+                        color,
+                    )))?;
+                    if ch == 'G' {
+                        chart.draw_series(std::iter::once(Circle::new((x, y), 4, RED.filled())))?;
+                    }
+                }
+            }
+            for path in &maze.demo_paths {
+                chart.draw_series(std::iter::once(PathElement::new(
+                    path.iter().map(|[x, y]| (*x, *y)).collect::<Vec<_>>(),
+                    BLUE.mix(0.7).stroke_width(2),
+                )))?;
+            }
+        }
         root.present()?;
         Ok(())
     })();
@@ -323,7 +435,13 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
             if d.solved { "<span class=solved>✔</span>" } else { "" }
         );
     }
-    h.push_str("</table>\n<h2>Progress</h2>\n");
+    h.push_str("</table>\n");
+    if let Some(maze) = &view.maze {
+        h.push_str("<h2>PointMaze: eval success per start cell</h2>\n<div id=\"maze-heatmap\">");
+        h.push_str(&maze_heatmap_svg(maze));
+        h.push_str("</div>\n<p>Green: the share of eval episodes from that cell that end at the goal; grey: no episode yet; blue: the demos; red: the goal.</p>\n");
+    }
+    h.push_str("<h2>Progress</h2>\n");
     h.push_str(&progress_svg(&view.history, &view.evals));
     if !view.levels.is_empty() {
         h.push_str("\n<h2>Forward curriculum: level sampling</h2>\n");
@@ -562,6 +680,43 @@ mod tests {
             "{text}"
         );
         assert!(text.ends_with("# EOF\n"));
+    }
+
+    fn maze() -> MazeView {
+        let snapshot = |steps: u64, successes: u64| MazeSnapshot {
+            policy_version: steps / 100,
+            env_steps: steps,
+            success_rate: successes as f64 / 2.0,
+            cells: vec![
+                MazeCell { row: 1, col: 2, episodes: 1, successes: 1 },
+                MazeCell { row: 1, col: 3, episodes: 1, successes: successes - 1 },
+            ],
+        };
+        MazeView {
+            map: vec!["####".into(), "#G..".into(), "####".into()],
+            snapshots: vec![snapshot(5000, 1), snapshot(9000, 2)],
+            demo_paths: vec![vec![[3.0, 1.0], [2.0, 1.0], [1.0, 1.0]]],
+        }
+    }
+
+    #[test]
+    fn the_maze_heatmap_has_a_cell_per_map_square_per_snapshot() {
+        let m = maze();
+        let svg = maze_heatmap_svg(&m);
+        assert!(svg.starts_with("<svg"), "{svg}");
+        // Background + 12 squares in each of the two panels.
+        assert!(svg.matches("<rect").count() >= 1 + 2 * 12, "{svg}");
+        assert!(svg.contains("5000 steps: 50%") && svg.contains("9000 steps: 100%"), "{svg}");
+        // The goal (red circle) in each panel and a demo path.
+        assert_eq!(svg.matches("<circle").count(), 2, "{svg}");
+        assert!(svg.contains("<polyline"), "{svg}");
+        let mut v = view();
+        v.maze = Some(m);
+        let html = render_html(&v, 2);
+        assert!(html.contains("id=\"maze-heatmap\""));
+        assert!(!html.contains("chart failed"));
+        // No heatmap section for other suites.
+        assert!(!render_html(&view(), 2).contains("maze-heatmap"));
     }
 
     #[test]

@@ -8,7 +8,8 @@ use std::pin::Pin;
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use rfcl_core::config::RunConfig;
+use rfcl_core::config::{RunConfig, Suite};
+use rfcl_core::maze::Cell;
 use rfcl_core::demo::DemoSet;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
 use rfcl_proto::v1;
@@ -17,7 +18,8 @@ use tokio::sync::watch;
 use tonic::{Request, Response, Status};
 
 use crate::dashboard::{
-    ActorRow, DashboardView, DemoBar, EvalPoint, LevelRow, ProgressPoint, RefusedReports,
+    ActorRow, DashboardView, DemoBar, EvalPoint, LevelRow, MazeCell, MazeSnapshot, MazeView,
+    ProgressPoint, RefusedReports,
 };
 use crate::leases::{LeaseTable, ReportRefusal};
 use crate::{
@@ -76,13 +78,17 @@ pub enum Granted {
 }
 
 /// Eval outcomes of one policy version (spec 5.7), keyed by version and env steps.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct EvalAggregate {
     pub env_steps: u64,
     pub episodes: u64,
     pub success_at_end: u64,
     pub success_once: u64,
     pub return_sum: f64,
+    /// `(reset seed, success at the end)` of every episode, for per-start views such as the
+    /// PointMaze heatmap (a seed determines the start cell). Absent in older snapshots.
+    #[serde(default)]
+    pub outcomes: Vec<(u64, bool)>,
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
@@ -112,6 +118,8 @@ pub struct Stats {
 
 const RECENT_EPISODES: usize = 100;
 const MAX_HISTORY: usize = 2000;
+/// Heatmaps the PointMaze panel draws over a run.
+pub const MAZE_SNAPSHOTS: usize = 6;
 
 /// The whole mutable state of the server; it is also what a snapshot holds.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -285,8 +293,9 @@ impl ServerState {
             .episodes += 1;
         self.reports_since_snapshot += 1;
         let assignment = match grant.assignment {
-            Granted::Eval { .. } => {
+            Granted::Eval { seed } => {
                 let e = self.stats.evals.entry(report.policy_version).or_default();
+                e.outcomes.push((seed, report.success_at_end));
                 e.env_steps = e.env_steps.max(report.policy_env_steps);
                 e.episodes += 1;
                 e.success_at_end += report.success_at_end as u64;
@@ -360,6 +369,69 @@ impl ServerState {
             0.0
         } else {
             r.iter().filter(|s| **s).count() as f64 / r.len() as f64
+        }
+    }
+
+    /// The PointMaze heatmap's data: success per start cell at up to [`MAZE_SNAPSHOTS`] evals
+    /// spread over the run (always the latest complete one), and the demos' paths. PointMaze
+    /// states start with the point's `(x, y)` (spec 7.5: qpos then qvel).
+    pub fn maze_view(&self, demos: &DemoResets) -> MazeView {
+        let maze = rfcl_core::maze::maze();
+        let cells = maze.start_cells();
+        // An eval counts once it has covered every start cell (all evals but a running one).
+        let complete: Vec<(&u64, &EvalAggregate)> = self
+            .stats
+            .evals
+            .iter()
+            .filter(|(_, e)| e.outcomes.len() >= cells.len())
+            .collect();
+        let picked: Vec<usize> = match complete.len() {
+            0 => Vec::new(),
+            n if n <= MAZE_SNAPSHOTS => (0..n).collect(),
+            n => (0..MAZE_SNAPSHOTS)
+                .map(|k| k * (n - 1) / (MAZE_SNAPSHOTS - 1))
+                .collect(),
+        };
+        let snapshots = picked
+            .into_iter()
+            .map(|i| {
+                let (version, e) = complete[i];
+                let mut per_cell: BTreeMap<Cell, (u64, u64)> = BTreeMap::new();
+                for &(seed, success) in &e.outcomes {
+                    let c = per_cell.entry(maze.seed_cell(seed)).or_default();
+                    c.0 += 1;
+                    c.1 += success as u64;
+                }
+                MazeSnapshot {
+                    policy_version: *version,
+                    env_steps: e.env_steps,
+                    success_rate: e.success_at_end as f64 / e.episodes.max(1) as f64,
+                    cells: per_cell
+                        .into_iter()
+                        .map(|((row, col), (episodes, successes))| MazeCell {
+                            row: row as u32,
+                            col: col as u32,
+                            episodes,
+                            successes,
+                        })
+                        .collect(),
+                }
+            })
+            .collect();
+        let demo_paths = demos
+            .states
+            .iter()
+            .map(|states| {
+                states
+                    .chunks_exact(demos.state_dim.max(2))
+                    .map(|s| [s[0], s[1]])
+                    .collect()
+            })
+            .collect();
+        MazeView {
+            map: rfcl_core::maze::MAP.lines().map(str::to_owned).collect(),
+            snapshots,
+            demo_paths,
         }
     }
 
@@ -455,6 +527,7 @@ impl ServerState {
             actors,
             evals,
             history: self.stats.history.clone(),
+            maze: None,
         }
     }
 }
@@ -498,7 +571,12 @@ impl Shared {
 
     pub fn view(&self) -> DashboardView {
         let now = unix_now();
-        self.lock().view(&self.cfg.name, &self.cfg.env.env_id, now)
+        let state = self.lock();
+        let mut view = state.view(&self.cfg.name, &self.cfg.env.env_id, now);
+        if self.cfg.env.suite == Suite::Pointmaze {
+            view.maze = Some(state.maze_view(&self.demos));
+        }
+        view
     }
 }
 
@@ -636,5 +714,55 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
             stage: view.stage,
             stage_epoch: view.stage_epoch,
         }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_maze_view_spreads_snapshots_over_complete_evals_and_counts_cells() {
+        let metas = [DemoMeta {
+            success: vec![false, false, true],
+            reset_seed: Some(0),
+        }];
+        let mut state = ServerState::new(Curriculum::new(&RunConfig::default(), &metas).unwrap(), 0.0);
+        let cells = rfcl_core::maze::maze().start_cells().len() as u64;
+        // Ten complete evals (one episode per start cell); version v solves cells with seed < v.
+        for v in 1..=10u64 {
+            let e = state.stats.evals.entry(v).or_default();
+            e.env_steps = v * 1000;
+            for seed in 0..cells {
+                let success = seed < v;
+                e.episodes += 1;
+                e.success_at_end += success as u64;
+                e.outcomes.push((100 * cells + seed, success));
+            }
+        }
+        // A running eval that has not covered every cell yet is left out.
+        state.stats.evals.entry(11).or_default().outcomes.push((0, true));
+        let demos = DemoResets {
+            state_dim: 5,
+            states: vec![vec![7.0, 1.0, 0.0, 0.0, 0.0, 6.0, 1.0, 0.0, 0.0, 0.0]],
+            reset: vec![ResetArgs::default()],
+        };
+        let view = state.maze_view(&demos);
+        let versions: Vec<u64> = view.snapshots.iter().map(|s| s.policy_version).collect();
+        // 6 of 10, evenly: indices 0, 1, 3, 5, 7, 9.
+        assert_eq!(versions, vec![1, 2, 4, 6, 8, 10]);
+        let last = view.snapshots.last().unwrap();
+        assert_eq!(last.cells.len() as u64, cells);
+        assert_eq!(last.cells.iter().map(|c| c.successes).sum::<u64>(), 10);
+        // Seed s starts in cell s mod 34 (row-major): seed 100*34 is the cell right of the goal.
+        let first_cell = rfcl_core::maze::maze().seed_cell(0);
+        let c = last
+            .cells
+            .iter()
+            .find(|c| (c.row as usize, c.col as usize) == first_cell)
+            .unwrap();
+        assert_eq!((c.episodes, c.successes), (1, 1));
+        assert_eq!(view.demo_paths, vec![vec![[7.0, 1.0], [6.0, 1.0]]]);
+        assert_eq!(view.map.len(), 12);
     }
 }

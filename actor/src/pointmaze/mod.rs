@@ -29,7 +29,7 @@
 //! [`demos`] plans collision-free demonstrations through the maze.
 
 pub mod demos;
-pub mod maze;
+pub use rfcl_core::maze;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -1,5 +1,6 @@
 //! The fixed 12×12 PointMaze layout (spec 7.5): walls, the goal cell, the start cells that the
-//! forward curriculum's seeds map to, and shortest paths to the goal.
+//! forward curriculum's seeds map to, and shortest paths to the goal. It lives in rfcl-core so
+//! that the curriculum server's dashboard can draw the maze without the actor crate.
 //!
 //! Coordinates: cell `(row, col)` is the unit square centred on `x = col`, `y = row`, so `y` grows
 //! downwards on the map, like the row index.
@@ -155,7 +156,7 @@ impl Maze {
     }
 
     /// The wall cells among `cell` and its 8 neighbours. A point inside `cell` can only touch these.
-    pub(crate) fn walls_around(&self, (r, c): Cell) -> impl Iterator<Item = Cell> + '_ {
+    pub fn walls_around(&self, (r, c): Cell) -> impl Iterator<Item = Cell> + '_ {
         let rows = r.saturating_sub(1)..=(r + 1).min(SIZE - 1);
         rows.flat_map(move |r| {
             let cols = c.saturating_sub(1)..=(c + 1).min(SIZE - 1);
