@@ -103,30 +103,10 @@ fn generated_demos_are_deterministic_and_start_from_distinct_cells() {
     );
     demos.iter().for_each(check_demo);
 
-    let other: Vec<u64> = generate_demos(34, 6).iter().map(|d| d.reset_seed).collect();
-    let first: Vec<u64> = demos.iter().map(|d| d.reset_seed).collect();
-    assert_ne!(other, first, "the seed breaks ties between equally useful starts");
+    let other: Vec<u64> = generate_demos(5, 6).iter().map(|d| d.reset_seed).collect();
+    let first: Vec<u64> = demos[..5].iter().map(|d| d.reset_seed).collect();
+    assert_ne!(other, first, "the seed shuffles the start cells");
     assert!(generate_demos(0, 5).is_empty());
-}
-
-#[test]
-fn the_first_three_demos_start_at_the_dead_ends_and_pass_every_open_cell() {
-    for seed in [0, 1, 7] {
-        let demos = generate_demos(3, seed);
-        let mut starts: Vec<_> = demos.iter().map(|d| d.start_cell).collect();
-        starts.sort();
-        // The three dead ends of the maze (docs/POINTMAZE.md).
-        assert_eq!(starts, vec![(3, 10), (9, 3), (10, 6)], "seed {seed}");
-        let maze = pointmaze::maze();
-        let mut passed: Vec<_> = demos
-            .iter()
-            .flat_map(|d| maze.path_to_goal(d.start_cell).unwrap())
-            .filter(|c| *c != maze.goal_cell())
-            .collect();
-        passed.sort();
-        passed.dedup();
-        assert_eq!(passed, pointmaze::start_cells(), "seed {seed}");
-    }
 }
 
 #[test]

@@ -167,57 +167,23 @@ pub fn plan_demo(reset_seed: u64) -> Result<PointMazeDemo, PlanError> {
     Ok(demo)
 }
 
-/// `n` demos from distinct start cells while `n` ≤ 34, in [`demo_start_order`].
+/// `n` demos from distinct start cells while `n` ≤ 34, in an order shuffled by `seed`.
 ///
-/// Demo `k` resets with seed `order[k % 34] + 34 · (k / 34)`: a demo's seed maps to its start cell
-/// (spec 7.5), and demos beyond the 34th revisit cells with other jitters.
+/// Demo `k` resets with seed `cells[k % 34] + 34 · (k / 34)`, where `cells` is the shuffled list of
+/// start-cell indices: a demo's seed maps to its start cell (spec 7.5), and demos beyond the 34th
+/// revisit cells with other jitters.
 ///
 /// # Panics
 /// If a demo cannot be planned. The maze is fixed and the tests plan every start cell, so this does
 /// not happen.
 pub fn generate_demos(n: usize, seed: u64) -> Vec<PointMazeDemo> {
-    let order = demo_start_order(seed);
-    let cells = order.len() as u64;
+    let cells = maze().start_cells().len() as u64;
+    let mut order: Vec<u64> = (0..cells).collect();
+    order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
     (0..n as u64)
         .map(|k| {
             let reset_seed = order[(k % cells) as usize] + cells * (k / cells);
             plan_demo(reset_seed).expect("every start cell of the fixed maze has a demo")
         })
         .collect()
-}
-
-/// The start cells (as seeds `0..34`) in the order demos are planned from, the way a researcher
-/// would pick demonstrations: each next start is the cell whose shortest path to the goal passes
-/// the most cells that no earlier demo passes (ties: farther from the goal first, then an order
-/// shuffled by `seed`). The maze's corridors form a tree, so the first three demos start at its
-/// three dead ends and together pass every open cell: the reverse curriculum (spec 2) then trains
-/// from states all over the maze, and the forward curriculum only has to generalise to the
-/// jittered starts. Later demos add no new cells and follow the shuffled, farthest-first order.
-pub fn demo_start_order(seed: u64) -> Vec<u64> {
-    let m = maze();
-    let cells = m.start_cells();
-    let mut shuffled: Vec<u64> = (0..cells.len() as u64).collect();
-    shuffled.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
-    let paths: Vec<Vec<Cell>> = cells
-        .iter()
-        .map(|&c| m.path_to_goal(c).expect("every start cell reaches the goal"))
-        .collect();
-    let mut covered = std::collections::HashSet::new();
-    let mut order = Vec::with_capacity(cells.len());
-    while !shuffled.is_empty() {
-        let (pos, _) = shuffled
-            .iter()
-            .enumerate()
-            .max_by_key(|&(pos, &i)| {
-                let path = &paths[i as usize];
-                let new = path.iter().filter(|c| !covered.contains(*c)).count();
-                // Earlier in the shuffle wins a tie: max_by_key keeps the last maximum.
-                (new, path.len(), std::cmp::Reverse(pos))
-            })
-            .expect("not empty");
-        let i = shuffled.remove(pos);
-        covered.extend(paths[i as usize].iter().copied());
-        order.push(i);
-    }
-    order
 }
