@@ -9,10 +9,19 @@
 //!   its own dependencies resolve (a CPU-only venv from `scripts/setup.sh` ships the file without the
 //!   NVIDIA wheels; forcing it there would make every binary fail to start). `RFCL_LINK_CUDA=0|1`
 //!   overrides the detection.
+//! * `proto/tensorboard.proto` (the event-file subset of TensorFlow's protos, see
+//!   `src/tensorboard.rs`) is compiled with protox + prost-build: no system protoc.
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn main() {
+    println!("cargo:rerun-if-changed=proto/tensorboard.proto");
+    let fds = protox::compile(["tensorboard.proto"], ["proto"])
+        .expect("compiling learner/proto/tensorboard.proto");
+    prost_build::Config::new()
+        .compile_fds(fds)
+        .expect("generating the TensorBoard event messages");
+
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
     println!("cargo:rerun-if-env-changed=PYTHON_SYS_EXECUTABLE");
     println!("cargo:rerun-if-env-changed=RFCL_LINK_CUDA");

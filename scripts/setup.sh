@@ -20,7 +20,8 @@ fail() { printf 'setup: FAILED: %s\n' "$*" >&2; exit 1; }
 SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
 
 # ---------------------------------------------------------------- system packages
-APT_PKGS=(pkg-config libhdf5-dev protobuf-compiler chromium curl ca-certificates)
+# libpython3.11-dev: rfcl-sim-worker embeds Python (pyo3 links libpython3.11.so).
+APT_PKGS=(pkg-config libhdf5-dev protobuf-compiler chromium curl ca-certificates libpython3.11-dev)
 BACKPORTS_PKGS=(mesa-vulkan-drivers libvulkan1)
 missing=()
 for p in "${APT_PKGS[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
@@ -65,8 +66,8 @@ if [ $PYTHON = 1 ]; then
     "$VENV/bin/pip" install -q --upgrade pip
     "$VENV/bin/pip" install -q torch==2.11.0 || fail "pip install torch==2.11.0"
   fi
-  if "$VENV/bin/python" -c "import mani_skill, metaworld, gymnasium_robotics, h5py, pytest" 2>/dev/null; then
-    step "simulators (mani_skill, metaworld, gymnasium-robotics, h5py): present"
+  if "$VENV/bin/python" -c "import mani_skill, metaworld, gymnasium_robotics, h5py, pytest, tensorboard" 2>/dev/null; then
+    step "simulators (mani_skill, metaworld, gymnasium-robotics, h5py), tensorboard: present"
   else
     step "simulators: installing the pinned matrix from python/requirements.txt"
     "$VENV/bin/pip" install -q -r "$ROOT/python/requirements.txt" || fail "pip install -r python/requirements.txt"

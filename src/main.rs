@@ -6,6 +6,9 @@
 //! non-zero.
 #![forbid(unsafe_code)]
 
+mod bench_e2e;
+mod demos_sim;
+mod demos_suites;
 mod eval;
 mod train;
 
@@ -41,8 +44,8 @@ enum Command {
         /// Run directory (default: runs/<name>, or runs/<name>-2, ... when that holds a run).
         #[arg(long, value_name = "DIR")]
         run_dir: Option<PathBuf>,
-        /// libtorch threads of the learner's SAC updates (default: all cores but one, which the
-        /// actors and the curriculum server on this machine need).
+        /// libtorch threads of the learner's SAC updates; overrides `learner.threads` (default:
+        /// all cores but one, which the actors and the curriculum server on this machine need).
         #[arg(long, value_name = "N")]
         learner_threads: Option<u32>,
     },
@@ -61,7 +64,8 @@ enum Command {
     },
     /// Benchmarks (results go to benches/RESULTS.md).
     Bench {
-        /// What to measure: curriculum (learner, actor, e2e come with their issues).
+        /// What to measure: curriculum (Acquire + Report pairs over gRPC) or actor (the actor's
+        /// overhead over a bare env loop). The learner's: `cargo bench -p rfcl-learner`.
         target: String,
         /// Concurrent clients (curriculum).
         #[arg(long, default_value_t = 64)]
@@ -72,6 +76,15 @@ enum Command {
         /// Load this running curriculum server instead of starting one (e.g. http://127.0.0.1:50051).
         #[arg(long, value_name = "ADDR")]
         connect: Option<String>,
+        /// Run config whose network the actor bench acts with.
+        #[arg(long, default_value = "configs/pointmaze_test.yml")]
+        config: PathBuf,
+        /// Envs per actor (actor).
+        #[arg(long, default_value_t = 8)]
+        envs: usize,
+        /// Actor counts, one whole run each (e2e).
+        #[arg(long, value_delimiter = ',', default_value = "1,2,4")]
+        actors: Vec<u32>,
     },
     /// Run configurations.
     Config {
@@ -89,7 +102,8 @@ enum DemosCommand {
     },
     /// Generate successful demos with their simulator states.
     Generate {
-        /// Env: pointmaze, or a simulator env id such as PickCube-v1.
+        /// Env: pointmaze, a ManiSkill3 env id such as PickCube-v1, or metaworld/<task> such as
+        /// metaworld/pick-place-v3 (MetaWorld's scripted policies).
         #[arg(long)]
         env: String,
         /// Number of successful demos.
@@ -98,7 +112,8 @@ enum DemosCommand {
         /// Output .h5 file (a .json sidecar is written beside it).
         #[arg(long)]
         out: PathBuf,
-        /// Seed of the generator (PointMaze: it picks which start cells the demos start from).
+        /// Seed of the generator (PointMaze: it picks which start cells the demos start from;
+        /// MetaWorld: the first episode seed).
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
@@ -107,6 +122,8 @@ enum DemosCommand {
         input: PathBuf,
         #[arg(long)]
         out: PathBuf,
+        #[command(flatten)]
+        suite: demos_suites::ConvertArgs,
     },
 }
 
@@ -171,6 +188,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 report.mean_return,
                 report.mean_length
             );
+            if report.env_id == rfcl_actor::pointmaze::ENV_ID {
+                println!(
+                    "success per start cell (tenths: 9 = 90% or more; G goal, # wall):\n{}",
+                    report.pointmaze_map()
+                );
+            }
             Ok(ExitCode::SUCCESS)
         }
         Command::Config { command: ConfigCommand::Show { file, overrides } } => {
@@ -186,20 +209,42 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Demos { command: DemosCommand::Generate { env, num, out, seed } } => {
             generate_demos(&env, num, &out, seed).map(|()| ExitCode::SUCCESS)
         }
-        Command::Demos { command: DemosCommand::Convert { input, .. } } => {
-            bail!("`rfcl demos convert {}` is not built yet (issues 7 and 8)", input.display())
+        Command::Demos { command: DemosCommand::Convert { input, out, suite } } => {
+            if demos_suites::handles_convert(&input, &suite) {
+                return demos_suites::convert(&input, &out, &suite).map(|()| ExitCode::SUCCESS);
+            }
+            demos_sim::convert(&input, &out).map(|()| ExitCode::SUCCESS)
         }
-        Command::Bench { target, clients, seconds, connect } => match target.as_str() {
+        Command::Bench { target, clients, seconds, connect, config, envs, actors } => match target.as_str() {
             "curriculum" => bench_curriculum(clients, seconds, connect).map(|()| ExitCode::SUCCESS),
-            other => bail!("`rfcl bench {other}` is not built yet (learner: issue 5; actor, e2e: issue 6); available: curriculum"),
+            "actor" => bench_actor(&config, envs, seconds).map(|()| ExitCode::SUCCESS),
+            "e2e" => {
+                let results = bench_e2e::run(&config, &actors, seconds)?;
+                let json = serde_json::json!({
+                    "bench": "e2e_env_steps",
+                    "config": config,
+                    "seconds_per_run": seconds,
+                    "results": results,
+                    "machine": { "cpus": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0) },
+                });
+                println!("{}", serde_json::to_string_pretty(&json)?);
+                Ok(ExitCode::SUCCESS)
+            }
+            other => bail!("`rfcl bench {other}`: expected curriculum, actor or e2e (the learner's bench is `cargo bench -p rfcl-learner`)"),
         },
     }
 }
 
 fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Result<()> {
     use rfcl_actor::pointmaze::{self, demos};
+    if demos_sim::is_maniskill_env(env) {
+        return demos_sim::generate(env, num, out, seed);
+    }
+    if demos_suites::is_suite_env(env) {
+        return demos_suites::generate(env, num, out, seed);
+    }
     if !env.eq_ignore_ascii_case("pointmaze") && env != pointmaze::ENV_ID {
-        bail!("`rfcl demos generate --env {env}` is not built yet: only pointmaze ({}) is (ManiSkill3: issue 7; MetaWorld: issue 8)", pointmaze::ENV_ID);
+        bail!("`rfcl demos generate --env {env}` is not built yet: it takes pointmaze ({}) or a ManiSkill3 task with a motion planner ({}), or metaworld/<task> such as metaworld/pick-place-v3 (Adroit's demos are converted: `rfcl demos convert --help`)", pointmaze::ENV_ID, demos_sim::MOTION_PLANNED.join(", "));
     }
     if num == 0 {
         bail!("-n must be at least 1");
@@ -215,6 +260,26 @@ fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Resu
         out.display(),
         rfcl_core::demo::DemoSet::sidecar_path(out).display()
     );
+    Ok(())
+}
+
+/// The actor's overhead over a bare loop stepping the same PointMaze envs with the same network:
+/// 4 alternating windows of `seconds / 8` each.
+fn bench_actor(config: &std::path::Path, envs: usize, seconds: f64) -> Result<()> {
+    if envs == 0 {
+        bail!("--envs must be at least 1");
+    }
+    let cfg = rfcl_core::config::resolve_file(config, &[])
+        .with_context(|| format!("reading {}", config.display()))?;
+    let window = std::time::Duration::from_secs_f64((seconds / 8.0).max(0.1));
+    let result = rfcl_actor::bench::actor_overhead(&cfg, envs, window, 4)?;
+    let json = serde_json::json!({
+        "bench": "actor_overhead",
+        "config": config,
+        "result": result,
+        "machine": { "cpus": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0) },
+    });
+    println!("{}", serde_json::to_string_pretty(&json)?);
     Ok(())
 }
 

@@ -170,7 +170,7 @@ fn unbuilt_subcommands_say_so_and_fail() {
         "demos",
         "generate",
         "--env",
-        "PickCube-v1",
+        "reach-v3",
         "--out",
         "/tmp/never.h5",
     ]);

@@ -39,6 +39,10 @@ pub enum EnvError {
     /// The reset options are not ones this env understands.
     #[error("reset options are invalid: {reason}")]
     InvalidOptions { reason: String },
+    /// The simulator behind the env failed: a Python exception (the message carries its
+    /// traceback), or a worker process that crashed or hung twice in a row (crate::python).
+    #[error("the simulator failed: {message}")]
+    Simulator { message: String },
 }
 
 /// The result of one [`Env::step`].

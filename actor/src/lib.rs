@@ -3,6 +3,8 @@
 //! * [`env`](mod@env): the [`Env`] trait every simulator implements for an actor (resets to seeds
 //!   and to demo states, steps, flat env states; spec 2.4, 5.6).
 //! * [`pointmaze`]: the native PointMaze toy task (spec 7.5) and its demo planner.
+//! * [`python`]: the Python simulators (ManiSkill3, MetaWorld, Adroit) as envs, each served by an
+//!   `rfcl-sim-worker` process.
 //! * [`suite`]: which envs an actor can make for a run's env config.
 //! * [`policy`]: the [`Policy`] an actor acts with, and uniform exploration (spec 5.4).
 //! * [`net`]: the learner's policy network ([`net::PolicyNet`]) as a [`Policy`].
@@ -10,14 +12,17 @@
 //!   2.5, 5.4-5.6), pure logic shared by the `actor` binary and `rfcl eval`.
 //! * [`eval`]: when eval actors evaluate and how many episodes (spec 5.7).
 //! * [`retry`]: backoff with a deadline for lost connections.
+//! * [`bench`]: `rfcl bench actor`, the actor's overhead over a bare env loop.
 //!
 //! The `actor` binary (`src/bin/actor/`) is the transport shell around [`rollout::Rollout`].
 #![forbid(unsafe_code)]
 
+pub mod bench;
 pub mod env;
 pub mod eval;
 pub mod net;
 pub mod pointmaze;
+pub mod python;
 pub mod policy;
 pub mod retry;
 pub mod rollout;

@@ -1,20 +1,15 @@
 //! From a run's env config to env instances: the one place that knows which suites an actor can
-//! run. PointMaze runs natively (spec 7.5); the simulator suites (ManiSkill3, MetaWorld, Adroit,
-//! spec 7.1-7.4) need Python workers that this actor does not drive yet, and say so.
+//! run. PointMaze runs natively (spec 7.5); ManiSkill3, MetaWorld and Adroit (spec 7.1-7.4) run
+//! in Python worker processes ([`crate::python`]), whose adapters report their own dims.
 use rfcl_core::config::{EnvConfig, Suite};
 
 use crate::env::Env;
 use crate::pointmaze::{self, PointMaze};
+use crate::python::{self, PythonEnv, WorkerSpec};
 
 /// Why no env could be made for a run.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum SuiteError {
-    #[error(
-        "env '{env_id}' of suite '{suite}' is not supported by the actor yet: only PointMaze \
-         ({}) runs natively; the Python simulator workers come with later issues",
-        pointmaze::ENV_ID
-    )]
-    Unsupported { suite: String, env_id: String },
     #[error(
         "suite pointmaze has one env, '{}'; the run asks for '{env_id}'",
         pointmaze::ENV_ID
@@ -27,34 +22,51 @@ pub enum SuiteError {
         expected: usize,
         got: usize,
     },
+    /// The Python worker could not be found, started or asked (the message says which, with the
+    /// Python traceback where there is one).
+    #[error("env '{env_id}' of suite '{suite}': {message}")]
+    Python {
+        suite: String,
+        env_id: String,
+        message: String,
+    },
 }
 
-/// Whether this actor can make envs of `env`'s suite (the dims are checked by [`make_env`]).
+/// Whether this actor can make envs of `env`'s suite, without starting one: PointMaze's env id,
+/// and for the Python suites that the worker binary is there (the dims are checked by
+/// [`make_env`]).
 pub fn check_supported(env: &EnvConfig) -> Result<(), SuiteError> {
     match env.suite {
         Suite::Pointmaze if env.env_id != pointmaze::ENV_ID => Err(SuiteError::UnknownPointMaze {
             env_id: env.env_id.clone(),
         }),
         Suite::Pointmaze => Ok(()),
-        other => Err(SuiteError::Unsupported {
-            suite: suite_name(other),
-            env_id: env.env_id.clone(),
-        }),
+        _ => WorkerSpec::from_env_config(env)
+            .map(|_| ())
+            .map_err(|e| python_error(env, e)),
     }
 }
 
-/// The observation and action dims of `env`'s envs.
+/// The observation and action dims of `env`'s envs (for a Python suite, from a worker started and
+/// stopped for the purpose).
 pub fn native_dims(env: &EnvConfig) -> Result<(usize, usize), SuiteError> {
-    // PointMaze is the one suite `check_supported` accepts.
     check_supported(env)?;
-    Ok((pointmaze::OBS_DIM, pointmaze::ACTION_DIM))
+    match env.suite {
+        Suite::Pointmaze => Ok((pointmaze::OBS_DIM, pointmaze::ACTION_DIM)),
+        _ => {
+            let spec = WorkerSpec::from_env_config(env).map_err(|e| python_error(env, e))?;
+            let hello = python::describe(&spec).map_err(|e| python_error(env, e))?;
+            Ok((hello.obs_dim, hello.action_dim))
+        }
+    }
 }
 
-fn suite_name(suite: Suite) -> String {
-    serde_json::to_value(suite)
-        .ok()
-        .and_then(|v| v.as_str().map(str::to_owned))
-        .unwrap_or_else(|| format!("{suite:?}"))
+fn python_error(env: &EnvConfig, e: python::PythonEnvError) -> SuiteError {
+    SuiteError::Python {
+        suite: python::suite_name(env.suite),
+        env_id: env.env_id.clone(),
+        message: e.to_string(),
+    }
 }
 
 /// A new env for `env` whose RNG starts from `seed` (see [`crate::rollout::derive_seed`]), checked
@@ -66,9 +78,14 @@ pub fn make_env(
     expected_obs_dim: usize,
     expected_action_dim: usize,
 ) -> Result<Box<dyn Env>, SuiteError> {
-    // PointMaze is the one suite `check_supported` accepts.
     check_supported(env)?;
-    let made: Box<dyn Env> = Box::new(PointMaze::new(seed));
+    let made: Box<dyn Env> = match env.suite {
+        Suite::Pointmaze => Box::new(PointMaze::new(seed)),
+        _ => {
+            let spec = WorkerSpec::from_env_config(env).map_err(|e| python_error(env, e))?;
+            Box::new(PythonEnv::start(spec, seed).map_err(|e| python_error(env, e))?)
+        }
+    };
     for (what, expected, got) in [
         ("obs_dim", expected_obs_dim, made.obs_dim()),
         ("action_dim", expected_action_dim, made.action_dim()),
@@ -112,20 +129,24 @@ mod tests {
     }
 
     #[test]
-    fn simulator_suites_say_not_supported_yet() {
+    fn python_suites_without_a_worker_binary_say_how_to_build_it() {
         let cfg = EnvConfig {
             env_id: "PickCube-v1".into(),
             suite: Suite::Maniskill3,
             ..EnvConfig::default()
         };
-        assert_eq!(check_supported(&cfg).err(), make_env(&cfg, 0, 42, 8).err());
-        let err = make_env(&cfg, 0, 42, 8).err().unwrap();
-        let msg = err.to_string();
-        assert!(
-            msg.contains("'PickCube-v1'")
-                && msg.contains("suite 'maniskill3'")
-                && msg.contains("not supported by the actor yet"),
-            "{msg}"
-        );
+        match check_supported(&cfg) {
+            // A built worker next to the test binary is fine too.
+            Ok(()) => {}
+            Err(err) => {
+                let msg = err.to_string();
+                assert!(
+                    msg.contains("'PickCube-v1'")
+                        && msg.contains("suite 'maniskill3'")
+                        && msg.contains("rfcl-sim-worker"),
+                    "{msg}"
+                );
+            }
+        }
     }
 }

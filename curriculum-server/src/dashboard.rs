@@ -189,7 +189,7 @@ pub fn demo_bars_svg(demos: &[DemoBar]) -> String {
 }
 
 /// Side of one maze cell in the heatmap, in pixels.
-const MAZE_CELL_PX: u32 = 16;
+const MAZE_CELL_PX: u32 = 13;
 
 /// White at 0, the page's green at 1 (opaque: a transparent colour would not be drawn at all).
 fn success_color(rate: f64) -> RGBColor {
@@ -226,7 +226,7 @@ pub fn maze_heatmap_svg(maze: &MazeView) -> String {
             } else {
                 format!("{} steps: {:.0}%", snap.env_steps, snap.success_rate * 100.0)
             };
-            root.draw_text(&caption, &("sans-serif", 12).into_font().color(&BLACK), (x0, 8))?;
+            root.draw_text(&caption, &("sans-serif", 15).into_font().color(&BLACK), (x0, 8))?;
             let grid = root
                 .clone()
                 .shrink((x0, caption_h as i32), (panel_w, rows * MAZE_CELL_PX));

@@ -34,44 +34,76 @@ pub fn validate_batch(
     layout: RecordLayout,
     max_stage_epoch: u64,
 ) -> Result<BatchInfo, WireError> {
+    validate_records(
+        MESSAGE,
+        RecordsHeader {
+            obs_dim: batch.obs_dim,
+            action_dim: batch.action_dim,
+            count: batch.count,
+        },
+        &batch.records,
+        layout,
+        max_stage_epoch,
+    )
+}
+
+/// What a transport says about the records it carries (a `TransitionBatch`'s fields, or a
+/// shared-memory frame's header).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RecordsHeader {
+    pub obs_dim: u32,
+    pub action_dim: u32,
+    pub count: u32,
+}
+
+/// The checks of [`validate_batch`] for records from any transport: both transports refuse
+/// exactly the same records. `message` names the carrier in errors (`TransitionBatch`, or the
+/// shared-memory frame).
+pub fn validate_records(
+    message: &'static str,
+    header: RecordsHeader,
+    records: &[u8],
+    layout: RecordLayout,
+    max_stage_epoch: u64,
+) -> Result<BatchInfo, WireError> {
     let err = |field: &'static str, problem: String| WireError {
-        message: MESSAGE,
+        message,
         field,
         problem,
     };
-    if batch.obs_dim as usize != layout.obs_dim {
+    if header.obs_dim as usize != layout.obs_dim {
         return Err(err(
             "obs_dim",
             format!(
                 "{} differs from the run's obs_dim {}",
-                batch.obs_dim, layout.obs_dim
+                header.obs_dim, layout.obs_dim
             ),
         ));
     }
-    if batch.action_dim as usize != layout.action_dim {
+    if header.action_dim as usize != layout.action_dim {
         return Err(err(
             "action_dim",
             format!(
                 "{} differs from the run's action_dim {}",
-                batch.action_dim, layout.action_dim
+                header.action_dim, layout.action_dim
             ),
         ));
     }
-    let count = batch.count as usize;
+    let count = header.count as usize;
     let record_bytes = layout.record_bytes();
-    if batch.records.len() != count * record_bytes {
+    if records.len() != count * record_bytes {
         return Err(err(
             "records",
             format!(
                 "{} bytes, expected count {count} × {record_bytes} bytes per record (obs_dim {}, action_dim {})",
-                batch.records.len(),
+                records.len(),
                 layout.obs_dim,
                 layout.action_dim
             ),
         ));
     }
     let views = layout
-        .view_batch(&batch.records)
+        .view_batch(records)
         .map_err(|e| err("records", e.to_string()))?;
     let (d, a) = (layout.obs_dim, layout.action_dim);
     let (mut obs, mut action, mut next_obs) = (vec![0.0; d], vec![0.0; a], vec![0.0; d]);
@@ -112,6 +144,141 @@ pub fn validate_batch(
         count,
         min_policy_version,
     })
+}
+
+/// The transports records arrive by.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Transport {
+    /// `PushTransitions` (remote actors, or any actor with `--transport grpc`).
+    Grpc,
+    /// The iceoryx2 shared-memory service (actors on the learner's host).
+    Shm,
+}
+
+impl Transport {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Transport::Grpc => "grpc",
+            Transport::Shm => "shm",
+        }
+    }
+}
+
+/// What one transport delivered to the ingest queue.
+#[derive(Debug, Default)]
+pub struct TransportCounts {
+    /// Records validated and queued for the training thread.
+    pub records: AtomicU64,
+    /// Batches (gRPC messages, shared-memory frames) validated and queued.
+    pub batches: AtomicU64,
+    /// Batches refused as malformed (their records are not used).
+    pub refused_batches: AtomicU64,
+    /// Records known to be missing between the batches of one sender (shared memory: from the
+    /// frames' sequence numbers). Always 0 for gRPC, whose losses the actor counts (unconfirmed).
+    pub lost_records: AtomicU64,
+}
+
+/// Records and batches in per transport, so the processes themselves show which way transitions
+/// came (Health, the learner's log, `rfcl train`'s summary). Metric names follow Prometheus:
+/// `rfcl_learner_ingest_records_total{transport="shm"}` and so on ([`IngestCounters::lines`]).
+#[derive(Debug, Default)]
+pub struct IngestCounters {
+    pub grpc: TransportCounts,
+    pub shm: TransportCounts,
+}
+
+/// One reading of [`IngestCounters`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct IngestTotals {
+    pub grpc_records: u64,
+    pub grpc_batches: u64,
+    pub shm_records: u64,
+    pub shm_batches: u64,
+    pub shm_lost_records: u64,
+    pub refused_batches: u64,
+}
+
+impl IngestCounters {
+    pub fn new() -> Arc<Self> {
+        Arc::new(Self::default())
+    }
+
+    pub fn of(&self, transport: Transport) -> &TransportCounts {
+        match transport {
+            Transport::Grpc => &self.grpc,
+            Transport::Shm => &self.shm,
+        }
+    }
+
+    /// Counts one validated, queued batch of `records` records.
+    pub fn queued(&self, transport: Transport, records: u64) {
+        let c = self.of(transport);
+        c.records.fetch_add(records, Ordering::Relaxed);
+        c.batches.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub fn totals(&self) -> IngestTotals {
+        let get = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        IngestTotals {
+            grpc_records: get(&self.grpc.records),
+            grpc_batches: get(&self.grpc.batches),
+            shm_records: get(&self.shm.records),
+            shm_batches: get(&self.shm.batches),
+            shm_lost_records: get(&self.shm.lost_records),
+            refused_batches: get(&self.grpc.refused_batches) + get(&self.shm.refused_batches),
+        }
+    }
+
+    /// Prometheus exposition lines (counters, `rfcl_learner_ingest_*_total{transport=...}`),
+    /// for a `/metrics` endpoint and for logs.
+    pub fn lines(&self) -> String {
+        let mut out = String::new();
+        for (name, help, pick) in [
+            (
+                "records",
+                "Transition records validated and queued, per transport",
+                (|c: &TransportCounts| &c.records) as fn(&TransportCounts) -> &AtomicU64,
+            ),
+            ("batches", "Transition batches validated and queued, per transport", |c| {
+                &c.batches
+            }),
+            ("refused_batches", "Malformed transition batches refused, per transport", |c| {
+                &c.refused_batches
+            }),
+            (
+                "lost_records",
+                "Transition records missing between one sender's batches, per transport",
+                |c| &c.lost_records,
+            ),
+        ] {
+            let metric = format!("rfcl_learner_ingest_{name}_total");
+            out.push_str(&format!("# HELP {metric} {help}.\n# TYPE {metric} counter\n"));
+            for t in [Transport::Grpc, Transport::Shm] {
+                out.push_str(&format!(
+                    "{metric}{{transport=\"{}\"}} {}\n",
+                    t.as_str(),
+                    pick(self.of(t)).load(Ordering::Relaxed)
+                ));
+            }
+        }
+        out
+    }
+}
+
+impl std::fmt::Display for IngestTotals {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "ingest_records_total{{transport=\"shm\"}}={} ingest_records_total{{transport=\"grpc\"}}={} \
+             (batches shm {} grpc {}); shm lost records {}; refused batches {}",
+            self.shm_records,
+            self.grpc_records,
+            self.shm_batches,
+            self.grpc_batches,
+            self.shm_lost_records,
+            self.refused_batches
+        )
+    }
 }
 
 /// Per-stream counts, shared by the `PushTransitions` handler and the training thread.
@@ -291,6 +458,40 @@ mod tests {
         assert!(e.problem.contains("stage_epoch 2 is ahead"), "{e}");
         let status: tonic::Status = field(&wrong_obs).into();
         assert_eq!(status.code(), tonic::Code::InvalidArgument);
+    }
+
+    #[test]
+    fn transports_are_counted_apart_with_prometheus_names() {
+        let c = IngestCounters::new();
+        c.queued(Transport::Shm, 64);
+        c.queued(Transport::Shm, 10);
+        c.queued(Transport::Grpc, 5);
+        c.shm.lost_records.fetch_add(3, Ordering::Relaxed);
+        c.grpc.refused_batches.fetch_add(1, Ordering::Relaxed);
+        let t = c.totals();
+        assert_eq!((t.shm_records, t.shm_batches), (74, 2));
+        assert_eq!((t.grpc_records, t.grpc_batches), (5, 1));
+        assert_eq!((t.shm_lost_records, t.refused_batches), (3, 1));
+        let text = c.lines();
+        assert!(text.contains("rfcl_learner_ingest_records_total{transport=\"shm\"} 74\n"), "{text}");
+        assert!(text.contains("rfcl_learner_ingest_records_total{transport=\"grpc\"} 5\n"), "{text}");
+        assert!(text.contains("# TYPE rfcl_learner_ingest_lost_records_total counter"), "{text}");
+        assert!(t.to_string().contains("ingest_records_total{transport=\"shm\"}=74"));
+    }
+
+    #[test]
+    fn both_transports_refuse_the_same_records() {
+        let layout = RecordLayout::new(3, 2);
+        let b = batch(layout, &[transition(3, vec![0.0, 2.0])]);
+        let header = RecordsHeader {
+            obs_dim: 3,
+            action_dim: 2,
+            count: 1,
+        };
+        let grpc = validate_batch(&b, layout, 0).unwrap_err();
+        let shm = validate_records("shm frame", header, &b.records, layout, 0).unwrap_err();
+        assert_eq!((grpc.field, &grpc.problem), (shm.field, &shm.problem));
+        assert!(shm.to_string().starts_with("malformed shm frame.records"), "{shm}");
     }
 
     #[tokio::test]

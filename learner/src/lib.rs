@@ -9,8 +9,12 @@
 //!   `data_action_scale`, the stage transition (spec 5.5, 6.2, 6.4, 4.2, 12.7).
 //! * [`batch`]: the tensors one iteration consumes.
 //! * [`bench`]: updates/s and FLOPs of the SAC update (`rfcl bench learner`).
+//! * [`metrics`], [`tensorboard`], [`prom`]: `metrics.csv`, TensorBoard event files and the
+//!   Prometheus `/metrics` state (spec 5.8, ARCHITECTURE "Run directory").
 //!
 //! * [`runtime`]: process-wide CPU settings (threads, allocator) for the SAC maths.
+//! * [`ingest`], [`service`], [`shm`]: transitions in over gRPC and iceoryx2 shared memory into
+//!   one validated, bounded ingest path, policy versions out over both, counted per transport.
 pub mod adam;
 pub mod batch;
 pub mod bench;
@@ -21,11 +25,14 @@ pub mod limiter;
 pub mod metrics;
 pub mod nets;
 pub mod policy;
+pub mod prom;
 pub mod replay;
 pub mod runtime;
 pub mod sac;
 pub mod service;
+pub mod shm;
 pub mod stages;
+pub mod tensorboard;
 pub mod trainer;
 
 pub use batch::{Batch, HostBatch};

@@ -4,12 +4,14 @@
 //! ```text
 //! learner --config CFG [key=value ...] --curriculum http://ADDR [--demos FILE] [--run-dir DIR]
 //!         [--port P] [--bind 127.0.0.1] [--resume RUN_DIR] [--device cpu|cuda] [--threads N]
+//!         [--metrics-port P]
 //! ```
 //!
 //! On start it loads the config and the demos (spec 6.1 selection), subscribes to the curriculum
 //! server's stage announcements, builds the agent and the buffers (or restores them with
 //! `--resume`), binds gRPC and prints exactly one line on stdout:
-//! `learner ready grpc=127.0.0.1:PORT`. Logs go to stderr. It stops after `train.steps` env steps,
+//! `learner ready grpc=127.0.0.1:PORT` (with ` metrics=http://ADDR/metrics` when
+//! `--metrics-port` is given). Logs go to stderr. It stops after `train.steps` env steps,
 //! when the curriculum server ends the run, or on SIGINT/SIGTERM, each time with a final
 //! checkpoint and the exported policy (exit 0); a failure exits non-zero with a one-line error.
 use std::net::{IpAddr, SocketAddr};
@@ -53,18 +55,26 @@ struct Args {
     /// gRPC port for actors (0 = a free one; the address is printed on stdout).
     #[arg(long, default_value_t = 0)]
     port: u16,
-    /// Address to bind the gRPC port on.
+    /// Serve Prometheus `/metrics` on this port (0 = a free one; the URL is on the ready line).
+    /// Default: no metrics endpoint.
+    #[arg(long, value_name = "P")]
+    metrics_port: Option<u16>,
+    /// Address to bind the gRPC (and metrics) port on.
     #[arg(long, default_value = "127.0.0.1")]
     bind: IpAddr,
     /// Where the SAC updates run (overrides sac.device).
     #[arg(long, value_parser = ["cpu", "cuda"])]
     device: Option<String>,
-    /// libtorch CPU threads for the SAC maths (default: all cores).
-    #[arg(long)]
-    threads: Option<i32>,
+    /// libtorch CPU threads for the SAC maths (overrides learner.threads; default: all cores
+    /// but one, at least 1).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    threads: Option<u32>,
     /// Capacity of the ingest queue, in transition batches (bounded: back-pressure beyond it).
     #[arg(long, default_value_t = 8)]
     queue_batches: usize,
+    /// Serve no shared-memory services: every actor, on this host too, uses gRPC.
+    #[arg(long)]
+    no_shm: bool,
     /// Seconds to wait for the curriculum server at start.
     #[arg(long, default_value_t = 10.0)]
     connect_timeout_s: f64,
@@ -134,11 +144,14 @@ async fn run(args: Args) -> Result<()> {
         );
     }
     if cfg.sac.device == Device::Cpu {
-        let threads = args
-            .threads
-            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get() as i32));
-        let applied = rfcl_learner::runtime::configure_cpu(threads);
+        let threads = cfg.learner.threads_here(args.threads);
+        let applied = rfcl_learner::runtime::configure_cpu(threads as i32);
         tracing::info!(threads = applied.threads, "SAC updates on the CPU");
+        if applied.threads > 1 && std::env::var_os("OMP_WAIT_POLICY").is_none() {
+            tracing::info!(
+                "OMP_WAIT_POLICY is not set: OpenMP threads spin while idle; set OMP_WAIT_POLICY=PASSIVE when actors share these cores (docs/LEARNER.md, \"Threads\")"
+            );
+        }
     }
 
     let timeout = Duration::from_secs_f64(args.connect_timeout_s.max(0.1));
@@ -190,6 +203,18 @@ async fn run(args: Args) -> Result<()> {
         .await
         .with_context(|| format!("binding the gRPC port {}:{}", args.bind, args.port))?;
     let addr = listener.local_addr().context("reading the bound address")?;
+    let metrics_listener = match args.metrics_port {
+        Some(port) => {
+            let l = TcpListener::bind(SocketAddr::new(args.bind, port))
+                .await
+                .with_context(|| format!("binding the metrics port {}:{port}", args.bind))?;
+            let at = l
+                .local_addr()
+                .context("reading the bound metrics address")?;
+            Some((l, at))
+        }
+        None => None,
+    };
     let layout = trainer.layout();
     let info = RunDescription {
         run_name: cfg.name.clone(),
@@ -197,26 +222,63 @@ async fn run(args: Args) -> Result<()> {
         obs_dim: layout.obs_dim as u32,
         action_dim: layout.action_dim as u32,
         curriculum_addr: args.curriculum.clone(),
-        transport: "grpc".into(),
         config_yaml: trainer.config_yaml().to_string(),
         run_seed: cfg.seed,
         learner_hostname: hostname(),
+        run_id: rfcl_shm::new_run_id(),
+        host_identity: rfcl_shm::host_identity(),
+        shm: None,
     };
+    let counters = rfcl_learner::ingest::IngestCounters::new();
 
     let (data_tx, data_rx) = mpsc::channel(args.queue_batches.max(1));
     let (stage_tx, stage_rx) = mpsc::unbounded_channel();
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
     let (stopping_tx, stopping_rx) = watch::channel(false);
+    // Same-host actors: transitions in and policies out over iceoryx2 (learner/src/shm.rs).
+    let shm = (!args.no_shm)
+        .then(|| {
+            rfcl_learner::shm::ShmTransport::start_for(
+                &info,
+                layout,
+                &status,
+                &data_tx,
+                &policy_rx,
+                &counters,
+                &stopping_rx,
+            )
+        })
+        .transpose()
+        .context("starting the shared-memory transport (--no-shm serves gRPC only)")?;
+    let info = RunDescription {
+        shm: shm.as_ref().map(|s| s.names.clone()),
+        ..info
+    };
     let service = LearnerService::new(
         info,
         status.clone(),
         data_tx,
         policy_rx,
         stopping_rx.clone(),
+        counters.clone(),
     );
 
+    let metrics_field = match metrics_listener {
+        Some((listener, at)) => {
+            let mut stopped = stopping_rx.clone();
+            let metrics = trainer.metrics();
+            metrics.add_collector(counters.clone());
+            tokio::spawn(rfcl_learner::prom::serve(listener, metrics, async move {
+                let _ = stopped.wait_for(|s| *s).await;
+            }));
+            let url = rfcl_learner::prom::describe(at);
+            tracing::info!("Prometheus metrics at {url}");
+            format!(" metrics={url}")
+        }
+        None => String::new(),
+    };
     // The one machine-readable line on stdout: `rfcl train` and tests read the address from it.
-    println!("learner ready grpc={addr}");
+    println!("learner ready grpc={addr}{metrics_field}");
 
     tokio::spawn(stages::follow(
         args.curriculum.clone(),
@@ -254,6 +316,10 @@ async fn run(args: Args) -> Result<()> {
         }
     };
     let _ = stopping_tx.send(true);
+    if let Some(shm) = shm {
+        let _ = tokio::task::spawn_blocking(move || shm.join(Duration::from_secs(5))).await;
+    }
+    tracing::info!("transitions taken in: {}", counters.totals());
     match tokio::time::timeout(Duration::from_secs(5), server).await {
         Ok(Ok(Ok(()))) => {}
         Ok(Ok(Err(e))) => tracing::warn!("gRPC server: {e}"),

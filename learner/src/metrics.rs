@@ -2,6 +2,9 @@
 //! of spec 5.8 (`train/critic/critic_loss`, ..., `time/SPS`) and the learner's own
 //! (`learner/*`: achieved UTD, buffer fill, drops, policy lag, where the time went).
 //!
+//! The same values go to TensorBoard ([`crate::tensorboard`], tag = column name, step =
+//! `env_steps`): [`Row::fields`] is the one list both are written from.
+//!
 //! Rows are keyed by env steps, never by wall time (ARCHITECTURE "Irreproducible runs"). On resume
 //! the rows written after the checkpoint are removed, so a curve never has two points for one
 //! step.
@@ -103,37 +106,81 @@ pub struct Row {
     pub timings: Timings,
 }
 
+/// One cell of a row: integers are written as integers, `Missing` as an empty cell (a
+/// TensorBoard event then has no point for that tag).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Cell {
+    Int(u64),
+    Float(f64),
+    Missing,
+}
+
+impl Cell {
+    fn text(self) -> String {
+        match self {
+            Cell::Int(v) => v.to_string(),
+            Cell::Float(v) => v.to_string(),
+            Cell::Missing => String::new(),
+        }
+    }
+
+    fn value(self) -> Option<f64> {
+        match self {
+            Cell::Int(v) => Some(v as f64),
+            Cell::Float(v) => Some(v),
+            Cell::Missing => None,
+        }
+    }
+}
+
 impl Row {
-    fn cells(&self) -> Vec<String> {
-        let opt = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
+    /// Every column with its cell, in [`COLUMNS`] order: the one list `metrics.csv` and the
+    /// TensorBoard events are written from.
+    pub fn fields(&self) -> Vec<(&'static str, Cell)> {
+        let int = Cell::Int;
+        let opt = |v: Option<f64>| v.map_or(Cell::Missing, Cell::Float);
         let mut cells = vec![
-            self.env_steps.to_string(),
-            self.stage.to_string(),
-            self.stage_epoch.to_string(),
-            self.policy_version.to_string(),
+            int(self.env_steps),
+            int(u64::from(self.stage)),
+            int(self.stage_epoch),
+            int(self.policy_version),
         ];
         cells.extend(self.updates.means().map(opt));
         cells.extend([
-            self.critic_updates_total.to_string(),
-            self.stage_1_steps.map_or(String::new(), |s| s.to_string()),
-            self.sps.to_string(),
-            self.timings.update.to_string(),
-            self.total_s.to_string(),
-            self.iterations_total.to_string(),
-            self.utd.to_string(),
-            self.utd_target.to_string(),
-            self.updates_per_s.to_string(),
-            self.replay_online.to_string(),
-            self.replay_offline.to_string(),
-            self.replay_bytes.to_string(),
-            self.dropped_stale_epoch.to_string(),
-            self.policy_lag_max.to_string(),
-            self.timings.wait.to_string(),
-            self.timings.ingest.to_string(),
-            self.timings.publish.to_string(),
-            self.timings.checkpoint.to_string(),
+            int(self.critic_updates_total),
+            self.stage_1_steps.map_or(Cell::Missing, int),
+            Cell::Float(self.sps),
+            Cell::Float(self.timings.update),
+            Cell::Float(self.total_s),
+            int(self.iterations_total),
+            Cell::Float(self.utd),
+            Cell::Float(self.utd_target),
+            Cell::Float(self.updates_per_s),
+            int(self.replay_online as u64),
+            int(self.replay_offline as u64),
+            int(self.replay_bytes as u64),
+            int(self.dropped_stale_epoch),
+            int(self.policy_lag_max),
+            Cell::Float(self.timings.wait),
+            Cell::Float(self.timings.ingest),
+            Cell::Float(self.timings.publish),
+            Cell::Float(self.timings.checkpoint),
         ]);
-        cells
+        debug_assert_eq!(cells.len(), COLUMNS.len());
+        COLUMNS.iter().copied().zip(cells).collect()
+    }
+
+    fn cells(&self) -> Vec<String> {
+        self.fields().into_iter().map(|(_, c)| c.text()).collect()
+    }
+
+    /// `(tag, value)` of every column but `env_steps` (the events' step) that has a value.
+    pub fn scalars(&self) -> Vec<(&'static str, f64)> {
+        self.fields()
+            .into_iter()
+            .skip(1)
+            .filter_map(|(tag, c)| Some((tag, c.value()?)))
+            .collect()
     }
 }
 
@@ -232,5 +279,32 @@ mod tests {
             .map(|l| l.split(',').next().unwrap().to_string())
             .collect();
         assert_eq!(steps, ["100", "200", "250"]);
+    }
+
+    #[test]
+    fn scalars_are_the_csv_cells_without_env_steps_and_empty_cells() {
+        let mut row = Row {
+            env_steps: 500,
+            stage: 2,
+            sps: 12.5,
+            ..Row::default()
+        };
+        let tags: Vec<&str> = row.scalars().iter().map(|(t, _)| *t).collect();
+        // No update ran and stage 1 has not ended: those cells are empty and have no scalar.
+        assert!(!tags.contains(&"env_steps"));
+        assert!(!tags.contains(&"train/critic/critic_loss"));
+        assert!(!tags.contains(&"train_stats/stage_1_steps"));
+        assert_eq!(tags.len(), COLUMNS.len() - 1 - 6 - 1);
+        row.stage_1_steps = Some(400);
+        let scalars = row.scalars();
+        let get = |tag: &str| scalars.iter().find(|(t, _)| *t == tag).map(|(_, v)| *v);
+        assert_eq!(get("stage"), Some(2.0));
+        assert_eq!(get("time/SPS"), Some(12.5));
+        assert_eq!(get("train_stats/stage_1_steps"), Some(400.0));
+        let cells = row.cells();
+        for (tag, value) in &scalars {
+            let i = COLUMNS.iter().position(|c| c == tag).unwrap();
+            assert_eq!(cells[i].parse::<f64>().unwrap(), *value, "{tag}");
+        }
     }
 }

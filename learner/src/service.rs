@@ -1,18 +1,24 @@
 //! The `rfcl.v1.Learner` gRPC service: a thin shell over the training thread.
 //!
 //! * `GetRunInfo`: the run description actors start from (dims, env id, curriculum address,
-//!   transport, resolved config as YAML, run seed, the learner's host).
+//!   resolved config as YAML, run seed, the learner's host), and the transport: the shared-memory
+//!   service names of this learner session with its host identity, and `transport` = "shm" for
+//!   an actor whose host identity equals the learner's (the actor still decides: `--transport`).
 //! * `PushTransitions`: client stream of validated [`TransitionBatch`](v1::TransitionBatch)es into
 //!   the bounded ingest queue. When the training thread falls behind (the `sync` UTD limiter), the
 //!   queue fills, this handler stops reading its stream and HTTP/2 flow control holds the actor
 //!   back. The answer, once the stream closed and every batch of it was handled, gives exact
-//!   counts: records stored and records dropped because their stage epoch had ended.
+//!   counts: records stored and records dropped because their stage epoch had ended. HTTP/2's
+//!   receive windows are small ([`STREAM_WINDOW_BYTES`]), so bytes in flight on a stream stay
+//!   within a few batches.
 //! * `WatchPolicy`: the current version first when newer than `after_version`, then each newer one
 //!   as it is published. Versions are immutable `Arc`s in a `watch` channel: a reader never sees a
-//!   torn version, and a slow reader skips straight to the latest. The stream ends when training
-//!   ends.
+//!   torn version, and a slow reader skips straight to the latest. The weights are `bytes::Bytes`:
+//!   every subscriber's message shares the one buffer (no copy per subscriber). The stream ends
+//!   when training ends.
 //! * `Health`: critic updates (`updates`), env steps received and stored, policy version, read
-//!   together at one consistent point of the training loop; `ok` is false once training failed.
+//!   together at one consistent point of the training loop; `ok` is false once training failed;
+//!   and the records and batches taken in per transport ([`IngestCounters`]).
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::atomic::Ordering;
@@ -26,11 +32,18 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::ingest::{validate_batch, IngestItem, StreamTally};
+use crate::ingest::{validate_batch, IngestCounters, IngestItem, StreamTally, Transport};
 use crate::trainer::LearnerStatus;
 
 /// Largest gRPC message accepted or sent (transition batches, policy weights of wide networks).
 pub const MAX_MESSAGE_BYTES: usize = 256 << 20;
+
+/// HTTP/2 receive window per stream (the protocol's default, 64 KiB, instead of hyper's 1 MiB):
+/// what a remote actor may have in flight on its PushTransitions stream beyond what the learner
+/// has read. About 2 batches of 64 paper-size records (400 B each); smaller records fit more.
+pub const STREAM_WINDOW_BYTES: u32 = 64 << 10;
+/// HTTP/2 receive window per connection: a few streams' worth.
+pub const CONNECTION_WINDOW_BYTES: u32 = 256 << 10;
 
 /// The run description `GetRunInfo` answers with (its dynamic part, the policy version, comes
 /// from the training thread).
@@ -41,11 +54,27 @@ pub struct RunDescription {
     pub obs_dim: u32,
     pub action_dim: u32,
     pub curriculum_addr: String,
-    /// "grpc": this learner ingests and publishes over gRPC only.
-    pub transport: String,
     pub config_yaml: String,
     pub run_seed: u64,
     pub learner_hostname: String,
+    /// This learner session's id (part of the shared-memory service names).
+    pub run_id: String,
+    /// [`rfcl_shm::host_identity`] of the learner's host.
+    pub host_identity: String,
+    /// The shared-memory services, when this learner serves them (`None`: gRPC only).
+    pub shm: Option<rfcl_shm::ServiceNames>,
+}
+
+impl RunDescription {
+    /// The transport this learner recommends to an actor with host identity `actor_host`:
+    /// shared memory when it serves it and the actor shares its host (and `/dev/shm`).
+    pub fn transport_for(&self, actor_host: &str) -> &'static str {
+        if self.shm.is_some() && !actor_host.is_empty() && actor_host == self.host_identity {
+            "shm"
+        } else {
+            "grpc"
+        }
+    }
 }
 
 #[derive(Clone)]
@@ -57,6 +86,7 @@ pub struct LearnerService {
     policy: watch::Receiver<Arc<v1::PolicyWeights>>,
     /// True once the learner is shutting down: open streams are answered and closed.
     stopping: watch::Receiver<bool>,
+    counters: Arc<IngestCounters>,
 }
 
 impl LearnerService {
@@ -66,6 +96,7 @@ impl LearnerService {
         ingest: mpsc::Sender<IngestItem>,
         policy: watch::Receiver<Arc<v1::PolicyWeights>>,
         stopping: watch::Receiver<bool>,
+        counters: Arc<IngestCounters>,
     ) -> Self {
         let layout = RecordLayout::new(info.obs_dim as usize, info.action_dim as usize);
         Self {
@@ -75,6 +106,7 @@ impl LearnerService {
             ingest,
             policy,
             stopping,
+            counters,
         }
     }
 
@@ -96,22 +128,29 @@ type PolicyStream = Pin<Box<dyn Stream<Item = Result<v1::PolicyWeights, Status>>
 impl Learner for LearnerService {
     async fn get_run_info(
         &self,
-        _: Request<v1::GetRunInfoRequest>,
+        request: Request<v1::GetRunInfoRequest>,
     ) -> Result<Response<v1::RunInfo>, Status> {
         let info = &self.info;
+        let (transitions, policy) = info.shm.as_ref().map_or_else(Default::default, |n| {
+            (n.transitions.clone(), n.policy.clone())
+        });
         Ok(Response::new(v1::RunInfo {
             run_name: info.run_name.clone(),
             env_id: info.env_id.clone(),
             obs_dim: info.obs_dim,
             action_dim: info.action_dim,
             curriculum_addr: info.curriculum_addr.clone(),
-            transport: info.transport.clone(),
-            shm_transitions_service: String::new(),
-            shm_policy_service: String::new(),
+            transport: info
+                .transport_for(&request.get_ref().host_identity)
+                .to_string(),
+            shm_transitions_service: transitions,
+            shm_policy_service: policy,
             policy_version: self.status.snapshot().policy_version,
             config_yaml: info.config_yaml.clone(),
             run_seed: info.run_seed,
             learner_hostname: info.learner_hostname.clone(),
+            run_id: info.run_id.clone(),
+            learner_host_identity: info.host_identity.clone(),
         }))
     }
 
@@ -130,7 +169,12 @@ impl Learner for LearnerService {
             };
             let Some(batch) = message else { break };
             let max_epoch = self.status.snapshot().stage_epoch + 1;
-            let info = validate_batch(&batch, self.layout, max_epoch)?;
+            let info = validate_batch(&batch, self.layout, max_epoch).inspect_err(|_| {
+                self.counters
+                    .grpc
+                    .refused_batches
+                    .fetch_add(1, Ordering::Relaxed);
+            })?;
             if info.count == 0 {
                 continue;
             }
@@ -139,6 +183,7 @@ impl Learner for LearnerService {
                 sent = self.ingest.send(item) => sent.map_err(|_| shutting_down())?,
                 _ = stopping.wait_for(|s| *s) => return Err(shutting_down()),
             }
+            self.counters.queued(Transport::Grpc, info.count as u64);
             queued += 1;
         }
         tokio::select! {
@@ -166,11 +211,18 @@ impl Learner for LearnerService {
         _: Request<v1::HealthRequest>,
     ) -> Result<Response<v1::HealthReply>, Status> {
         let s = self.status.snapshot();
+        let t = self.counters.totals();
         Ok(Response::new(v1::HealthReply {
             ok: !self.status.failed.load(Ordering::Relaxed),
             updates: s.critic_updates,
             env_steps: s.env_steps,
             policy_version: s.policy_version,
+            grpc_records: t.grpc_records,
+            grpc_batches: t.grpc_batches,
+            shm_records: t.shm_records,
+            shm_batches: t.shm_batches,
+            shm_lost_records: t.shm_lost_records,
+            refused_batches: t.refused_batches,
         }))
     }
 }
@@ -183,6 +235,8 @@ pub async fn serve(
 ) -> Result<(), tonic::transport::Error> {
     tonic::transport::Server::builder()
         .tcp_nodelay(true)
+        .initial_stream_window_size(STREAM_WINDOW_BYTES)
+        .initial_connection_window_size(CONNECTION_WINDOW_BYTES)
         .add_service(service.into_server())
         .serve_with_incoming_shutdown(
             tokio_stream::wrappers::TcpListenerStream::new(listener),

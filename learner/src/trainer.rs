@@ -40,8 +40,10 @@ use crate::ingest::IngestItem;
 use crate::limiter::UtdLimiter;
 use crate::metrics::{MetricsCsv, Row, Timings, UpdateMeans};
 use crate::policy::{self, PolicyDescription, PolicyError, PolicyShape};
+use crate::prom::{self, LearnerMetrics};
 use crate::replay::{data_action_scale, offline_from_demos, Replay, ReplayBuffer};
 use crate::sac::Sac;
+use crate::tensorboard::EventWriter;
 
 /// How often the training thread logs its progress line (stderr).
 pub const REPORT_EVERY: Duration = Duration::from_secs(10);
@@ -166,6 +168,14 @@ pub struct Trainer {
     progress: Progress,
     action_scale: Option<Vec<f32>>,
     csv: MetricsCsv,
+    /// TensorBoard events: the values of each `metrics.csv` row.
+    tb: EventWriter,
+    /// Prometheus state (`learner --metrics-port`), refreshed with the Health status.
+    prom: Arc<LearnerMetrics>,
+    /// Seconds per activity since this process started (Prometheus).
+    seconds: Timings,
+    /// Critic updates/s, env steps/s and the largest policy lag of the last progress window.
+    last_window: (f64, f64, u64),
     /// A batch partly handled (the ingest paused at a boundary).
     pending: Option<IngestItem>,
     stop: Option<StopReason>,
@@ -298,6 +308,11 @@ impl Trainer {
             path: csv_path.clone(),
             source,
         })?;
+        let tb = EventWriter::create(&run_dir, resumed_at).map_err(|source| TrainError::Io {
+            what: "creating a TensorBoard event file in",
+            path: run_dir.clone(),
+            source,
+        })?;
         let layout = RecordLayout::new(sac.obs_dim(), sac.action_dim());
         let config_yaml = rfcl_core::config::to_yaml(&cfg);
         let env_id = demos
@@ -307,7 +322,7 @@ impl Trainer {
         let status = Arc::new(LearnerStatus::default());
         let (policy_tx, policy_rx) = watch::channel(Arc::new(v1::PolicyWeights {
             version: progress.policy_version,
-            safetensors: policy::encode_actor(&sac)?,
+            safetensors: policy::encode_actor(&sac)?.into(),
             learner_env_steps: progress.env_steps,
         }));
         let trainer = Self {
@@ -325,6 +340,10 @@ impl Trainer {
             progress,
             action_scale,
             csv,
+            tb,
+            prom: Arc::new(LearnerMetrics::default()),
+            seconds: Timings::default(),
+            last_window: (0.0, 0.0, 0),
             pending: None,
             stop: None,
             policy_tx,
@@ -361,6 +380,11 @@ impl Trainer {
     }
     pub fn config_yaml(&self) -> &str {
         &self.config_yaml
+    }
+    /// The Prometheus state this trainer keeps current (serve it with [`prom::serve`]; the
+    /// transports count their own drops into it).
+    pub fn metrics(&self) -> Arc<LearnerMetrics> {
+        self.prom.clone()
     }
 
     /// Runs until the budget, a shutdown or the curriculum's end; then writes the final
@@ -642,7 +666,7 @@ impl Trainer {
         let start = Instant::now();
         let weights = v1::PolicyWeights {
             version: self.progress.policy_version,
-            safetensors: policy::encode_actor(&self.sac)?,
+            safetensors: policy::encode_actor(&self.sac)?.into(),
             learner_env_steps: self.progress.env_steps,
         };
         self.policy_tx.send_replace(Arc::new(weights));
@@ -782,7 +806,14 @@ impl Trainer {
             what: "writing",
             path: self.csv.path().to_path_buf(),
             source,
-        })
+        })?;
+        self.tb
+            .scalars(row.env_steps, row.scalars())
+            .map_err(|source| TrainError::Io {
+                what: "writing",
+                path: self.tb.path().to_path_buf(),
+                source,
+            })
     }
 
     /// The periodic progress line on stderr.
@@ -793,6 +824,12 @@ impl Trainer {
         let w = std::mem::replace(&mut self.report, Window::new(&self.progress));
         let secs = w.start.elapsed().as_secs_f64();
         let t = w.timings;
+        self.last_window = (
+            (self.progress.critic_updates - w.critic_updates) as f64 / secs,
+            (self.progress.env_steps - w.env_steps) as f64 / secs,
+            w.lag_max,
+        );
+        self.update_status();
         tracing::info!(
             "stage {} | env steps {} ({:.1}/s) | critic updates {} ({:.1}/s) | UTD {:.3} (target {:.3}) | online {}/{} offline {} ({:.1} MB) | dropped stale {} | policy v{} lag<={} | time: wait {:.0}% ingest {:.0}% update {:.0}% publish {:.0}% checkpoint {:.0}%",
             self.progress.stage,
@@ -837,6 +874,7 @@ impl Trainer {
         let secs = since.elapsed().as_secs_f64();
         *field(&mut self.row.timings) += secs;
         *field(&mut self.report.timings) += secs;
+        *field(&mut self.seconds) += secs;
     }
 
     fn wall_ms(&self) -> u64 {
@@ -851,6 +889,31 @@ impl Trainer {
             policy_version: p.policy_version,
             stage_epoch: p.stage_epoch,
             dropped_stale_epoch: p.dropped_stale_epoch,
+        });
+        let buffer = |b: &ReplayBuffer| prom::BufferStats {
+            len: b.len(),
+            capacity: b.capacity(),
+            bytes: b.bytes(),
+        };
+        let (updates_per_s, env_steps_per_s, lag) = self.last_window;
+        self.prom.set(prom::Snapshot {
+            env_steps: p.env_steps,
+            critic_updates: p.critic_updates,
+            actor_updates: p.actor_updates,
+            iterations: self.limiter.iterations(),
+            updates_per_s,
+            env_steps_per_s,
+            utd: self.limiter.achieved_utd(),
+            utd_target: self.limiter.target_utd(),
+            online: buffer(&self.replay.online),
+            offline: self.replay.offline.as_ref().map(buffer),
+            stage: p.stage,
+            stage_epoch: p.stage_epoch,
+            policy_version: p.policy_version,
+            policy_lag_max: lag.max(self.report.lag_max),
+            dropped_stale_epoch: p.dropped_stale_epoch,
+            unused_at_end: p.discarded,
+            seconds: self.seconds,
         });
     }
 }

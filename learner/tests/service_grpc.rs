@@ -27,6 +27,7 @@ async fn run_info_updates_on_schedule_and_whole_policy_versions() {
         .get_run_info(v1::GetRunInfoRequest {
             actor_id: 1,
             hostname: "test".into(),
+            host_identity: "machine-id=another-host".into(),
         })
         .await
         .unwrap()
@@ -34,6 +35,7 @@ async fn run_info_updates_on_schedule_and_whole_policy_versions() {
     assert_eq!((info.obs_dim, info.action_dim), (OBS as u32, ACT as u32));
     assert_eq!(info.env_id, "PointMaze-v0");
     assert_eq!(info.run_name, "ltest");
+    // Not on the learner's host: gRPC (service_shm.rs covers the same-host case).
     assert_eq!(info.transport, "grpc");
     assert_eq!(info.curriculum_addr, curriculum.grpc);
     assert_eq!(info.run_seed, 3);

@@ -249,6 +249,30 @@ mod tests {
         assert!(!tail.contains("    b"));
     }
 
+    /// The learner (like every child) starts with `OMP_WAIT_POLICY=PASSIVE` unless the user set
+    /// the variable (docs/LEARNER.md, "Threads").
+    #[tokio::test]
+    async fn children_get_a_passive_openmp_wait_policy() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let script = dir.path().join("fake-learner");
+        std::fs::write(
+            &script,
+            "#!/bin/sh\necho \"fake ready omp=${OMP_WAIT_POLICY:-unset}\"\n",
+        )
+        .unwrap();
+        std::fs::set_permissions(&script, std::fs::Permissions::from_mode(0o755)).unwrap();
+        let launcher = Launcher {
+            bin_dir: dir.path().to_path_buf(),
+            log_dir: dir.path().to_path_buf(),
+            setpriv: None,
+        };
+        let mut child = launcher.spawn("learner", "fake-learner", vec![]).unwrap();
+        let line = child.ready_line(Duration::from_secs(30)).await.unwrap();
+        let expected = std::env::var("OMP_WAIT_POLICY").unwrap_or_else(|_| "PASSIVE".into());
+        assert!(line.ends_with(&format!("omp={expected}")), "{line}");
+    }
+
     #[test]
     fn statuses_are_described() {
         use std::os::unix::process::ExitStatusExt;

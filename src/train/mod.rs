@@ -56,7 +56,7 @@ pub struct TrainArgs {
     pub overrides: Vec<String>,
     pub resume: Option<PathBuf>,
     pub run_dir: Option<PathBuf>,
-    /// `learner --threads`; `None`: all cores but one.
+    /// `learner --threads`; `None`: `learner.threads` of the config (default all cores but one).
     pub learner_threads: Option<u32>,
 }
 
@@ -140,10 +140,7 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
         RunProgress::default()
     };
     progress.sessions += 1;
-    let learner_threads = args.learner_threads.unwrap_or_else(|| {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get() as u32);
-        cores.saturating_sub(1).max(1)
-    });
+    let learner_threads = cfg.learner.threads_here(args.learner_threads);
     if learner_threads == 0 {
         bail!("--learner-threads must be at least 1");
     }
@@ -337,6 +334,9 @@ impl Session {
             &cfg.service.learner_port.to_string(),
             "--threads",
             &prep.learner_threads.to_string(),
+            // Prometheus /metrics on a free port (its URL is on the ready line).
+            "--metrics-port",
+            "0",
         ]));
         args.push(if prep.resume { "--resume" } else { "--run-dir" }.into());
         args.push(run_dir);
@@ -348,6 +348,9 @@ impl Session {
         let learner_url = format!("http://{learner_addr}");
         println!("dashboard: {dashboard}");
         eprintln!("curriculum server at {curriculum_url}, learner at {learner_url}");
+        if let Some(metrics) = ready_field(&line, "metrics") {
+            eprintln!("learner metrics (Prometheus): {metrics}");
+        }
 
         let curriculum =
             CurriculumClient::new(channel(&curriculum_url)?).max_decoding_message_size(64 << 20);

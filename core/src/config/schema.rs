@@ -23,6 +23,7 @@ pub struct RunConfig {
     pub reverse: ReverseConfig,
     pub forward: ForwardConfig,
     pub service: ServiceConfig,
+    pub learner: LearnerConfig,
 }
 
 /// Which simulator family runs the env.
@@ -351,6 +352,33 @@ pub struct ServiceConfig {
     pub stop_at_eval_success: Option<f64>,
 }
 
+/// The learner process's own options (not the SAC maths: those are `sac`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LearnerConfig {
+    /// libtorch CPU threads for the SAC updates; `None` = all cores but one (at least 1), which
+    /// leaves a core to the actors and the curriculum server on the same machine.
+    pub threads: Option<u32>,
+}
+
+impl LearnerConfig {
+    /// The learner's thread count: `flag` (`learner --threads`, `rfcl train --learner-threads`)
+    /// when given, else `learner.threads`, else `cores - 1`, at least 1.
+    pub fn resolve_threads(&self, flag: Option<u32>, cores: usize) -> u32 {
+        flag.or(self.threads).unwrap_or_else(|| {
+            u32::try_from(cores.saturating_sub(1))
+                .unwrap_or(u32::MAX)
+                .max(1)
+        })
+    }
+
+    /// [`resolve_threads`](Self::resolve_threads) with this machine's core count.
+    pub fn threads_here(&self, flag: Option<u32>) -> u32 {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        self.resolve_threads(flag, cores)
+    }
+}
+
 /// How transitions and policy weights travel between actors and the learner.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -374,6 +402,7 @@ impl Default for RunConfig {
             reverse: ReverseConfig::default(),
             forward: ForwardConfig::default(),
             service: ServiceConfig::default(),
+            learner: LearnerConfig::default(),
         }
     }
 }
@@ -527,5 +556,24 @@ impl Default for ServiceConfig {
             dashboard_port: 0,
             stop_at_eval_success: None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn learner_threads_resolve_flag_then_config_then_all_cores_but_one() {
+        let default = LearnerConfig::default();
+        assert_eq!(default.resolve_threads(None, 2), 1);
+        assert_eq!(default.resolve_threads(None, 16), 15);
+        assert_eq!(default.resolve_threads(None, 1), 1);
+        assert_eq!(default.resolve_threads(None, 0), 1);
+        let set = LearnerConfig { threads: Some(4) };
+        assert_eq!(set.resolve_threads(None, 2), 4);
+        assert_eq!(set.resolve_threads(Some(3), 2), 3);
+        assert_eq!(default.resolve_threads(Some(2), 16), 2);
+        assert!(default.threads_here(None) >= 1);
     }
 }

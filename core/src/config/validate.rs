@@ -17,7 +17,8 @@ impl RunConfig {
         self.validate_train()?;
         self.validate_reverse()?;
         self.validate_forward()?;
-        self.validate_service()
+        self.validate_service()?;
+        at_least_opt("learner.threads", self.learner.threads, 1)
     }
 
     fn validate_run_and_env(&self) -> Result<(), ConfigError> {
@@ -428,5 +429,18 @@ mod tests {
     #[test]
     fn the_default_config_is_valid() {
         RunConfig::default().validate().unwrap();
+    }
+
+    #[test]
+    fn learner_threads_must_be_at_least_one() {
+        let mut cfg = RunConfig::default();
+        cfg.learner.threads = Some(0);
+        let err = cfg.validate().unwrap_err().to_string();
+        assert!(
+            err.contains("learner.threads") && err.contains(">= 1"),
+            "{err}"
+        );
+        cfg.learner.threads = Some(1);
+        cfg.validate().unwrap();
     }
 }

@@ -256,7 +256,11 @@ impl Learner {
         let hostname = std::fs::read_to_string("/proc/sys/kernel/hostname")
             .map(|h| h.trim().to_string())
             .unwrap_or_default();
-        let req = v1::GetRunInfoRequest { actor_id, hostname };
+        let req = v1::GetRunInfoRequest {
+            actor_id,
+            hostname,
+            host_identity: rfcl_shm::host_identity(),
+        };
         let result = retrying(&self.peer, "GetRunInfo", self.retry_for, || {
             let mut c = self.client.clone();
             let r = req.clone();
@@ -266,6 +270,23 @@ impl Learner {
         result
             .map(|r| r.into_inner())
             .map_err(|s| anyhow!("GetRunInfo refused by the {}: {}", self.peer, s.message()))
+    }
+
+    /// Returns an error once the learner has been unreachable for `retry_for` (checked with
+    /// Health every `every`). Over shared memory nothing else notices a dead learner: a gRPC
+    /// actor's policy stream does.
+    pub async fn watch_alive(&self, every: Duration) -> Result<()> {
+        loop {
+            tokio::time::sleep(every).await;
+            let result = retrying(&self.peer, "Health", self.retry_for, || {
+                let mut c = self.client.clone();
+                async move { c.health(v1::HealthRequest {}).await }
+            })
+            .await?;
+            if let Err(status) = result {
+                bail!("Health refused by the {}: {}", self.peer, status.message());
+            }
+        }
     }
 
     /// Keeps `latest` at the newest policy the learner published, re-subscribing after a lost
@@ -476,4 +497,7 @@ pub struct PushCounters {
     pub unconfirmed: AtomicU64,
     /// Transitions the learner dropped as from an ended stage epoch (its PushSummary).
     pub dropped_stale_epoch: AtomicU64,
+    /// Transitions this actor gave up sending (shared memory: the learner stopped receiving, or
+    /// the actor stopped while the learner held it back). Counted, never silent.
+    pub given_up: AtomicU64,
 }

@@ -7,8 +7,13 @@
 //! Report per episode) or, with `--eval`, evaluates each policy that passes a multiple of
 //! `sac.eval_freq` with the deterministic policy on EVAL leases (spec 5.7). Lost connections are
 //! retried with backoff for `--retry-for` seconds; after that the actor exits non-zero.
+//!
+//! Transport (`--transport auto|shm|grpc`, `shm.rs`): transitions and policies go over iceoryx2
+//! shared memory when the actor runs on the learner's host, over gRPC otherwise; the choice and
+//! its reason are logged.
 mod links;
 mod service;
+mod shm;
 
 use std::process::ExitCode;
 use std::time::Duration;
@@ -37,6 +42,10 @@ struct Args {
     /// Seconds a lost learner or curriculum server is retried before the actor gives up.
     #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
     retry_for: f64,
+    /// How transitions and policies travel: shared memory on the learner's host (auto), always
+    /// shared memory (shm: an error if the learner's services do not open), or gRPC.
+    #[arg(long, value_enum, default_value_t = shm::Choice::Auto)]
+    transport: shm::Choice,
 }
 
 fn main() -> ExitCode {
@@ -71,6 +80,7 @@ fn main() -> ExitCode {
         envs: args.envs,
         id: args.id,
         retry_for: Duration::from_secs_f64(args.retry_for),
+        transport: args.transport,
     };
     let id = opts.id;
     match runtime.block_on(service::run(opts, shutdown_signal())) {

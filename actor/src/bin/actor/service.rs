@@ -1,6 +1,8 @@
 //! The actor's loops: the thin shell that feeds leases and policies into a [`Rollout`] and ships
 //! what it produces (transition batches to the learner, episode reports to the curriculum server).
-use std::sync::atomic::Ordering;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -17,6 +19,7 @@ use rfcl_proto::v1;
 use tokio::sync::{mpsc, watch};
 
 use crate::links::{Curriculum, Learner, PushCounters, Reported};
+use crate::shm::{self, Choice, Plan, ShmLink};
 
 /// What the actor was asked to do.
 #[derive(Debug, Clone)]
@@ -26,6 +29,7 @@ pub struct Options {
     pub envs: u32,
     pub id: u32,
     pub retry_for: Duration,
+    pub transport: Choice,
 }
 
 /// Why the actor stopped without an error.
@@ -58,14 +62,6 @@ pub async fn run(
     let info = learner.run_info(opts.id).await?;
     let cfg = parse_config(&info.config_yaml)
         .with_context(|| format!("the run config sent by the {}", learner.peer))?;
-    match info.transport.as_str() {
-        "grpc" | "" => {}
-        other => bail!(
-            "the {} offers transport '{other}'; this actor speaks grpc only (shared memory comes \
-             with a later issue)",
-            learner.peer
-        ),
-    }
     if cfg.train.data_action_scale.is_some() {
         bail!(
             "the run sets train.data_action_scale (spec 6.4); this actor cannot apply the learner's \
@@ -117,14 +113,38 @@ pub async fn run(
         info.curriculum_addr
     );
 
+    let layout = RecordLayout::new(run.obs_dim, run.action_dim);
+    let batch = run.cfg.service.transition_batch.max(1) as usize;
+    let link = open_transport(&opts, &info, batch, layout.record_bytes())?;
+
     let (policy_tx, policy_rx) = watch::channel(None);
-    let watcher = {
-        let learner = learner.clone();
-        async move { learner.watch_policy(policy_tx).await }
+    // Stops the shared-memory threads (if any) when this function returns.
+    let stop = StopOnDrop(Arc::new(AtomicBool::new(false)));
+    let (watcher, publisher): (Pin<Box<dyn Future<Output = Result<()>>>>, _) = match link {
+        Some(link) => {
+            let (publisher, policy) = link.into_parts();
+            shm::start_policy_follower(policy, policy_tx, stop.0.clone())?;
+            // Nothing else would notice a dead learner: check it is there.
+            let learner = learner.clone();
+            (
+                Box::pin(async move { learner.watch_alive(Duration::from_secs(2)).await }),
+                Some(publisher),
+            )
+        }
+        None => {
+            let learner = learner.clone();
+            (
+                Box::pin(async move { learner.watch_policy(policy_tx).await }),
+                None,
+            )
+        }
     };
-    tokio::pin!(watcher);
+    let transport = if publisher.is_some() { "shm" } else { "grpc" };
+    let mut watcher = watcher;
     tokio::pin!(shutdown);
     if opts.eval {
+        // Eval actors send no transitions.
+        drop(publisher);
         let work = eval_loop(&run, rollout, policy_rx);
         tokio::select! {
             r = work => r,
@@ -137,10 +157,19 @@ pub async fn run(
         // ahead of the learner (policy lag).
         let capacity = 1;
         let (batch_tx, batch_rx) = mpsc::channel(capacity);
-        let pusher = {
-            let learner = learner.clone();
-            let counters = counters.clone();
-            tokio::spawn(async move { learner.push_transitions(batch_rx, counters).await })
+        let pusher = match publisher {
+            Some(publisher) => {
+                let (done, stop_send) =
+                    shm::start_pusher(publisher, batch_rx, counters.clone(), opts.retry_for)?;
+                Pusher::Shm { done, stop_send }
+            }
+            None => {
+                let learner = learner.clone();
+                let counters = counters.clone();
+                Pusher::Grpc(tokio::spawn(async move {
+                    learner.push_transitions(batch_rx, counters).await
+                }))
+            }
         };
         let mut train = TrainLoop {
             run: &run,
@@ -148,8 +177,8 @@ pub async fn run(
             policy_rx,
             batch_tx,
             pending: Vec::new(),
-            layout: RecordLayout::new(run.obs_dim, run.action_dim),
-            batch: run.cfg.service.transition_batch.max(1) as usize,
+            layout,
+            batch,
             refused: 0,
             policy: None,
         };
@@ -165,22 +194,16 @@ pub async fn run(
         // Flush what is ready (best effort, bounded) and account for the rest.
         let unsent = train.pending.len();
         drop(train.batch_tx);
-        let flushed = match stopped {
-            Ok(_) => tokio::time::timeout(Duration::from_secs(3), pusher)
-                .await
-                .is_ok(),
-            Err(_) => {
-                pusher.abort();
-                false
-            }
-        };
+        let flushed = pusher.finish(stopped.is_ok()).await;
         tracing::info!(
+            transport,
             env_steps = train.rollout.env_steps(),
             episodes = train.rollout.episodes(),
             sent = counters.sent.load(Ordering::Relaxed),
             accepted = counters.accepted.load(Ordering::Relaxed),
             unconfirmed = counters.unconfirmed.load(Ordering::Relaxed),
             dropped_stale_epoch = counters.dropped_stale_epoch.load(Ordering::Relaxed),
+            given_up = counters.given_up.load(Ordering::Relaxed),
             unsent_partial_batch = unsent,
             abandoned_episodes = train.rollout.abandoned(),
             refused_reports = train.refused,
@@ -188,6 +211,87 @@ pub async fn run(
             "actor stopping"
         );
         stopped
+    }
+}
+
+/// Sets its flag when dropped: the shared-memory threads watch it.
+struct StopOnDrop(Arc<AtomicBool>);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+}
+
+/// The shared-memory link when [`shm::decide`] and opening the services say so; `None` for gRPC.
+/// Logs the choice and why.
+fn open_transport(
+    opts: &Options,
+    info: &v1::RunInfo,
+    batch: usize,
+    record_bytes: usize,
+) -> Result<Option<ShmLink>> {
+    let own_host = rfcl_shm::host_identity();
+    match shm::decide(opts.transport, info, &own_host)? {
+        Plan::Grpc { why } => {
+            tracing::info!(actor = opts.id, transport = "grpc", "transport: gRPC ({why})");
+            Ok(None)
+        }
+        Plan::Shm { required } => match ShmLink::open(info, opts.id, batch, record_bytes) {
+            Ok(link) => {
+                let (transitions, policy) = link.services();
+                tracing::info!(
+                    actor = opts.id,
+                    transport = "shm",
+                    %transitions,
+                    %policy,
+                    "transport: shared memory (iceoryx2; {})",
+                    if required { "--transport shm" } else { "on the learner's host" }
+                );
+                Ok(Some(link))
+            }
+            Err(e) if required => Err(e).context("--transport shm"),
+            Err(e) => {
+                tracing::warn!(
+                    actor = opts.id,
+                    transport = "grpc",
+                    "transport: gRPC (on the learner's host, but shared memory failed: {e:#})"
+                );
+                Ok(None)
+            }
+        },
+    }
+}
+
+/// Where the train loop's batches go.
+enum Pusher {
+    Grpc(tokio::task::JoinHandle<Result<()>>),
+    Shm {
+        done: tokio::sync::oneshot::Receiver<Result<()>>,
+        /// Ends a send that waits for room in the learner's queue.
+        stop_send: Arc<AtomicBool>,
+    },
+}
+
+impl Pusher {
+    /// After the batch channel closed: waits (at most 3 s) for what is queued to go out when the
+    /// actor stopped cleanly; otherwise abandons it (counted by the pusher). Whether it flushed.
+    async fn finish(self, clean: bool) -> bool {
+        let limit = Duration::from_secs(if clean { 3 } else { 0 });
+        match self {
+            Pusher::Grpc(task) => {
+                if !clean {
+                    task.abort();
+                    return false;
+                }
+                tokio::time::timeout(limit, task).await.is_ok()
+            }
+            Pusher::Shm { done, stop_send } => {
+                let flushed = clean && tokio::time::timeout(limit, done).await.is_ok();
+                stop_send.store(true, Ordering::Relaxed);
+                flushed
+            }
+        }
     }
 }
 
