@@ -1,7 +1,8 @@
 //! `rfcl train configs/pointmaze_test.yml` end to end, with real binaries on loopback: PointMaze
 //! from 5 generated demos reaches an eval-success bar on the true initial-state distribution (all
 //! 34 start cells); the summary, the run directory and the processes' own counters (learner Health,
-//! curriculum GetState) show that transitions and leases flowed; no child outlives the run;
+//! curriculum GetState) show that transitions flowed over shared memory and leases over gRPC; no
+//! child outlives the run;
 //! `rfcl eval` runs the exported policy.
 //!
 //! The bar is [`BAR`], not the config's 0.9: on the 2-core development machine the config needs
@@ -63,6 +64,12 @@ fn pointmaze_test_config_trains_to_its_bar() {
     });
     let (health, state) = flowing.unwrap_or_else(|| panic!("no progress:\n{}", training.stderr()));
     assert!(health.ok && health.policy_version > 1, "{health:?}");
+    // One host: the actors' transitions come over shared memory (the learner's own counters),
+    // while their leases and reports go over gRPC (the curriculum server's episodes above).
+    assert!(
+        health.shm_records > 0 && health.grpc_records == 0,
+        "{health:?}"
+    );
     assert_eq!(state["stage"], 1, "a fresh run starts in stage 1");
 
     let status = training.wait(Duration::from_secs(900));
@@ -78,6 +85,12 @@ fn pointmaze_test_config_trains_to_its_bar() {
     assert_reached(&summary, BAR);
     assert_eq!(summary["sessions"], 1);
     assert_eq!(summary["actor_respawns"], 0, "no actor died");
+    let shm = summary["transitions_shm"].as_u64().unwrap();
+    assert!(
+        shm >= summary["env_steps"].as_u64().unwrap(),
+        "every stored transition came over shared memory: {summary:#}"
+    );
+    assert_eq!(summary["transitions_grpc"], 0, "{summary:#}");
     // No lease is lost, except those of episodes the actors dropped when stage 2 began (their
     // reports would have been refused): at most one per train env.
     let stage_changes = summary["stage"].as_u64().unwrap() - 1;
@@ -97,6 +110,11 @@ fn pointmaze_test_config_trains_to_its_bar() {
         assert!(run_dir.join(file).is_file(), "{file} missing");
     }
     assert!(!run_dir.join("processes.json").exists());
+    let actor_log = std::fs::read_to_string(run_dir.join("logs/actor-0.log")).unwrap();
+    assert!(
+        actor_log.contains("transport: shared memory"),
+        "{actor_log}"
+    );
     for pid in pids {
         assert!(!alive(pid), "child {pid} outlived the run");
     }

@@ -15,6 +15,8 @@ use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
 use serde_json::Value;
 
+pub mod sim;
+
 /// The documented fast test config.
 pub fn test_config() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/pointmaze_test.yml")

@@ -1,0 +1,168 @@
+//! The actor's transport, with the real binaries: a curriculum server, a learner and one PointMaze
+//! actor as child processes on this host, the actor forced to each transport in turn
+//! (`--transport shm`, `--transport grpc`). The learner's own counters (Health) show which way the
+//! transitions came, the curriculum server's that leases and reports went over gRPC either way,
+//! and the actor's log names its choice. `--transport shm` against a learner that serves no shared
+//! memory is a clear error.
+mod train_support;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use train_support::*;
+
+fn binary(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_BIN_EXE_rfcl")).with_file_name(name)
+}
+
+/// A child that is killed when dropped.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `name ARGS` and returns it with the value of `field=` on its ready line.
+fn start_service(name: &str, args: &[&str], log: &Path, field: &str) -> (Proc, String) {
+    let mut child = Command::new(binary(name))
+        .args(args)
+        .env("OMP_WAIT_POLICY", "PASSIVE")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let value = line
+        .split_whitespace()
+        .find_map(|w| w.strip_prefix(&format!("{field}=")))
+        .unwrap_or_else(|| {
+            panic!(
+                "{name} did not start ({line:?}):\n{}",
+                std::fs::read_to_string(log).unwrap_or_default()
+            )
+        })
+        .to_string();
+    (Proc(child), value)
+}
+
+struct Services {
+    _curriculum: Proc,
+    _learner: Proc,
+    processes: serde_json::Value,
+    dir: tempfile::TempDir,
+}
+
+fn start_services(learner_extra: &[&str]) -> Services {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let demos = generate_demos(dir.path());
+    let config = test_config();
+    let run = dir.path().join("run");
+    let (config, demos, run) = (
+        config.to_str().unwrap().to_string(),
+        demos.to_str().unwrap().to_string(),
+        run.to_str().unwrap().to_string(),
+    );
+    let (curriculum, cur_addr) = start_service(
+        "curriculum-server",
+        &["--config", &config, "--demos", &demos, "--run-dir", &run],
+        &dir.path().join("curriculum.log"),
+        "grpc",
+    );
+    let cur_url = format!("http://{cur_addr}");
+    let mut args = vec![
+        "--config", &config, "--demos", &demos, "--run-dir", &run, "--curriculum", &cur_url,
+        "--threads", "1",
+    ];
+    args.extend_from_slice(learner_extra);
+    let (learner, addr) = start_service("learner", &args, &dir.path().join("learner.log"), "grpc");
+    let processes = serde_json::json!({
+        "learner": format!("http://{addr}"),
+        "curriculum": cur_url,
+    });
+    Services {
+        _curriculum: curriculum,
+        _learner: learner,
+        processes,
+        dir,
+    }
+}
+
+fn start_actor(s: &Services, transport: &str, log: &Path) -> Proc {
+    Proc(
+        Command::new(binary("actor"))
+            .args(["--connect", s.processes["learner"].as_str().unwrap()])
+            .args(["--envs", "2", "--id", "0", "--retry-for", "10"])
+            .args(["--transport", transport])
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(log).unwrap())
+            .spawn()
+            .unwrap(),
+    )
+}
+
+/// Runs one actor with `--transport transport` until the learner has taken 1,000 transitions
+/// and the curriculum server has seen episodes; returns the learner's Health then.
+fn run_actor(transport: &str) -> (rfcl_proto::v1::HealthReply, String) {
+    let s = start_services(&[]);
+    let log = s.dir.path().join("actor.log");
+    let mut actor = start_actor(&s, transport, &log);
+    let health = wait_for(Duration::from_secs(180), || {
+        let h = learner_health(&s.processes)?;
+        let episodes = curriculum_state(&s.processes)?["episodes"].as_u64()?;
+        (h.env_steps >= 1000 && episodes > 0).then_some(h)
+    })
+    .unwrap_or_else(|| {
+        panic!(
+            "no progress over {transport}; actor log:\n{}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        )
+    });
+    assert!(actor.0.try_wait().unwrap().is_none(), "the actor is alive");
+    signal(actor.0.id(), rustix::process::Signal::TERM);
+    let status = actor.0.wait().unwrap();
+    assert!(status.success(), "actor exit {status}");
+    (health, std::fs::read_to_string(&log).unwrap())
+}
+
+#[test]
+fn an_actor_forced_to_shared_memory_sends_every_transition_that_way() {
+    let (h, log) = run_actor("shm");
+    assert!(h.shm_records >= 1000, "{h:?}");
+    assert_eq!(h.grpc_records, 0, "{h:?}");
+    assert_eq!((h.shm_lost_records, h.refused_batches), (0, 0), "{h:?}");
+    assert!(log.contains("transport: shared memory"), "{log}");
+}
+
+#[test]
+fn an_actor_forced_to_grpc_sends_every_transition_that_way() {
+    let (h, log) = run_actor("grpc");
+    assert!(h.grpc_records >= 1000, "{h:?}");
+    assert_eq!(h.shm_records, 0, "{h:?}");
+    assert_eq!(h.refused_batches, 0, "{h:?}");
+    assert!(log.contains("transport: gRPC (--transport grpc)"), "{log}");
+}
+
+#[test]
+fn forcing_shared_memory_without_it_is_a_clear_error() {
+    let s = start_services(&["--no-shm"]);
+    let log = s.dir.path().join("actor.log");
+    let mut actor = start_actor(&s, "shm", &log);
+    let status = actor.0.wait().unwrap();
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(!status.success());
+    assert!(
+        text.contains("error: actor 0: --transport shm: the learner serves no shared-memory services"),
+        "{text}"
+    );
+    // The learner still serves gRPC.
+    assert!(learner_health(&s.processes).is_some());
+}
