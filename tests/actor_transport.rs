@@ -79,8 +79,16 @@ fn start_services(learner_extra: &[&str]) -> Services {
     );
     let cur_url = format!("http://{cur_addr}");
     let mut args = vec![
-        "--config", &config, "--demos", &demos, "--run-dir", &run, "--curriculum", &cur_url,
-        "--threads", "1",
+        "--config",
+        &config,
+        "--demos",
+        &demos,
+        "--run-dir",
+        &run,
+        "--curriculum",
+        &cur_url,
+        "--threads",
+        "1",
     ];
     args.extend_from_slice(learner_extra);
     let (learner, addr) = start_service("learner", &args, &dir.path().join("learner.log"), "grpc");
@@ -160,7 +168,9 @@ fn forcing_shared_memory_without_it_is_a_clear_error() {
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(!status.success());
     assert!(
-        text.contains("error: actor 0: --transport shm: the learner serves no shared-memory services"),
+        text.contains(
+            "error: actor 0: --transport shm: the learner serves no shared-memory services"
+        ),
         "{text}"
     );
     // The learner still serves gRPC.

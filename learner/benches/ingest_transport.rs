@@ -116,9 +116,13 @@ fn bench_shm(
     )
     .expect("starting the shared-memory transport");
     let (node, _) = ShmNode::create("bench", "bench-actor").unwrap();
-    let mut publisher =
-        TransitionPublisher::open(node, &transport.names.transitions, batch, layout.record_bytes())
-            .unwrap();
+    let mut publisher = TransitionPublisher::open(
+        node,
+        &transport.names.transitions,
+        batch,
+        layout.record_bytes(),
+    )
+    .unwrap();
     let bytes = records(layout, batch);
     let start = Instant::now();
     let until = start + Duration::from_secs_f64(seconds);

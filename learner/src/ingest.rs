@@ -1,9 +1,11 @@
-//! Transition ingest: validation of `TransitionBatch` messages at the edge, and the items that
-//! travel through the bounded queue to the training thread (ARCHITECTURE "Transition record",
-//! "every queue is bounded", "every drop is counted").
+//! Transition ingest: validation of transition records at the edge, whichever transport brought
+//! them (a gRPC `TransitionBatch`, a shared-memory frame: [`validate_records`] is the one check),
+//! the items that travel through the bounded queue to the training thread, and the counts per
+//! transport ([`IngestCounters`]) (ARCHITECTURE "Transition record", "every queue is bounded",
+//! "every drop is counted").
 //!
-//! A batch is validated whole before any of it is queued; a malformed one is refused with
-//! `INVALID_ARGUMENT` naming the field. What the training thread does with each record (stored,
+//! A batch is validated whole before any of it is queued; a malformed one is refused (gRPC: with
+//! `INVALID_ARGUMENT` naming the field; shared memory: counted and logged). What the training thread does with each record (stored,
 //! or dropped because its stage epoch is over, spec 4) is tallied per stream, so
 //! `PushTransitions` answers with exact counts once every batch of the stream was handled.
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -239,12 +241,16 @@ impl IngestCounters {
                 "Transition records validated and queued, per transport",
                 (|c: &TransportCounts| &c.records) as fn(&TransportCounts) -> &AtomicU64,
             ),
-            ("batches", "Transition batches validated and queued, per transport", |c| {
-                &c.batches
-            }),
-            ("refused_batches", "Malformed transition batches refused, per transport", |c| {
-                &c.refused_batches
-            }),
+            (
+                "batches",
+                "Transition batches validated and queued, per transport",
+                |c| &c.batches,
+            ),
+            (
+                "refused_batches",
+                "Malformed transition batches refused, per transport",
+                |c| &c.refused_batches,
+            ),
             (
                 "lost_records",
                 "Transition records missing between one sender's batches, per transport",
@@ -252,7 +258,9 @@ impl IngestCounters {
             ),
         ] {
             let metric = format!("rfcl_learner_ingest_{name}_total");
-            out.push_str(&format!("# HELP {metric} {help}.\n# TYPE {metric} counter\n"));
+            out.push_str(&format!(
+                "# HELP {metric} {help}.\n# TYPE {metric} counter\n"
+            ));
             for t in [Transport::Grpc, Transport::Shm] {
                 out.push_str(&format!(
                     "{metric}{{transport=\"{}\"}} {}\n",
@@ -473,10 +481,21 @@ mod tests {
         assert_eq!((t.grpc_records, t.grpc_batches), (5, 1));
         assert_eq!((t.shm_lost_records, t.refused_batches), (3, 1));
         let text = c.lines();
-        assert!(text.contains("rfcl_learner_ingest_records_total{transport=\"shm\"} 74\n"), "{text}");
-        assert!(text.contains("rfcl_learner_ingest_records_total{transport=\"grpc\"} 5\n"), "{text}");
-        assert!(text.contains("# TYPE rfcl_learner_ingest_lost_records_total counter"), "{text}");
-        assert!(t.to_string().contains("ingest_records_total{transport=\"shm\"}=74"));
+        assert!(
+            text.contains("rfcl_learner_ingest_records_total{transport=\"shm\"} 74\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("rfcl_learner_ingest_records_total{transport=\"grpc\"} 5\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("# TYPE rfcl_learner_ingest_lost_records_total counter"),
+            "{text}"
+        );
+        assert!(t
+            .to_string()
+            .contains("ingest_records_total{transport=\"shm\"}=74"));
     }
 
     #[test]
@@ -491,7 +510,10 @@ mod tests {
         let grpc = validate_batch(&b, layout, 0).unwrap_err();
         let shm = validate_records("shm frame", header, &b.records, layout, 0).unwrap_err();
         assert_eq!((grpc.field, &grpc.problem), (shm.field, &shm.problem));
-        assert!(shm.to_string().starts_with("malformed shm frame.records"), "{shm}");
+        assert!(
+            shm.to_string().starts_with("malformed shm frame.records"),
+            "{shm}"
+        );
     }
 
     #[tokio::test]

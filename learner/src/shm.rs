@@ -44,6 +44,8 @@ const FRAME: &str = "shared-memory transition frame";
 const IDLE_SLEEP: Duration = Duration::from_micros(200);
 /// How often refused frames and gaps are logged at most (each is counted always).
 const WARN_EVERY: Duration = Duration::from_secs(10);
+/// How often the policy thread connects new subscribers while no new version comes.
+const CONNECT_EVERY: Duration = Duration::from_millis(20);
 /// Shared-memory frames queued for the training thread at most (not yet handled).
 pub const MAX_QUEUED: u64 = 2;
 
@@ -284,7 +286,9 @@ impl IngestLoop {
             }
         };
         let expected = self.expected.entry(header.publisher).or_default();
-        let gap = header.records_before.saturating_sub(expected.records_before);
+        let gap = header
+            .records_before
+            .saturating_sub(expected.records_before);
         let frames_missing = header.seq.saturating_sub(expected.seq);
         *expected = Expected {
             seq: header.seq + 1,
@@ -372,12 +376,24 @@ fn publish_policies(
             return;
         }
         published += 1;
-        let more = runtime.block_on(async {
-            tokio::select! {
-                changed = policy.changed() => changed.is_ok(),
-                _ = stopping.wait_for(|s| *s) => false,
+        // Until the next version: new subscribers get the current one within a tick.
+        let more = loop {
+            let next = runtime.block_on(async {
+                tokio::select! {
+                    changed = policy.changed() => Some(changed.is_ok()),
+                    _ = stopping.wait_for(|s| *s) => Some(false),
+                    _ = tokio::time::sleep(CONNECT_EVERY) => None,
+                }
+            });
+            match next {
+                Some(more) => break more,
+                None => {
+                    if let Err(e) = publisher.connect_new_subscribers() {
+                        tracing::warn!("{e}");
+                    }
+                }
             }
-        });
+        };
         if !more {
             break;
         }

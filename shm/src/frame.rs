@@ -93,7 +93,12 @@ impl TransitionHeader {
     /// The header and the record bytes that follow it. The records' length is not checked here:
     /// the learner validates them exactly as it validates a gRPC `TransitionBatch`.
     pub fn decode(frame: &[u8]) -> Result<(Self, &[u8]), FrameError> {
-        check_header(frame, "transition", TRANSITION_MAGIC, TRANSITION_HEADER_BYTES)?;
+        check_header(
+            frame,
+            "transition",
+            TRANSITION_MAGIC,
+            TRANSITION_HEADER_BYTES,
+        )?;
         let header = Self {
             actor_id: u32_at(frame, 8),
             obs_dim: u32_at(frame, 12),

@@ -20,6 +20,6 @@ pub mod ports;
 pub use frame::{FrameError, PolicyHeader, TransitionHeader};
 pub use naming::{host_identity, new_run_id, ServiceNames};
 pub use ports::{
-    Cleanup, PolicyFrame, PolicyLimits, PolicyPublisher, PolicySubscriber, Sent, ShmError,
-    ShmNode, TransitionFrame, TransitionLimits, TransitionPublisher, TransitionSubscriber,
+    Cleanup, PolicyFrame, PolicyLimits, PolicyPublisher, PolicySubscriber, Sent, ShmError, ShmNode,
+    TransitionFrame, TransitionLimits, TransitionPublisher, TransitionSubscriber,
 };

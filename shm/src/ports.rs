@@ -142,7 +142,9 @@ fn cleanup_dead_nodes(config: &Config, run_prefix: &str) -> Cleanup {
         CallbackProgression::Continue
     });
     if let Err(e) = listed {
-        tracing::warn!("shared memory: listing iceoryx2 nodes failed ({e:?}); no stale-node cleanup");
+        tracing::warn!(
+            "shared memory: listing iceoryx2 nodes failed ({e:?}); no stale-node cleanup"
+        );
     }
     let mut cleanup = Cleanup::default();
     for (name, view) in dead {
@@ -204,7 +206,11 @@ impl TransitionFrame {
 }
 
 impl TransitionSubscriber {
-    pub fn create(node: ShmNode, service: &str, limits: TransitionLimits) -> Result<Self, ShmError> {
+    pub fn create(
+        node: ShmNode,
+        service: &str,
+        limits: TransitionLimits,
+    ) -> Result<Self, ShmError> {
         let create = |problem: String| ShmError::Create {
             service: service.to_string(),
             problem,
@@ -403,7 +409,9 @@ pub struct PolicyLimits {
 
 impl Default for PolicyLimits {
     fn default() -> Self {
-        Self { max_subscribers: 32 }
+        Self {
+            max_subscribers: 32,
+        }
     }
 }
 
@@ -482,6 +490,20 @@ impl PolicyPublisher {
             .send()
             .map_err(|e| io("publishing a policy version", format!("{e:?}")))?;
         Ok(())
+    }
+
+    /// Connects subscribers that arrived since the last call and hands them the current version
+    /// (the history). Publishing does this too; call it while no new version comes, or a new
+    /// actor waits for the next one.
+    pub fn connect_new_subscribers(&self) -> Result<(), ShmError> {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        self.publisher
+            .update_connections()
+            .map_err(|e| ShmError::Io {
+                what: "connecting new subscribers",
+                service: self.service.clone(),
+                problem: format!("{e:?}"),
+            })
     }
 
     pub fn service(&self) -> &str {

@@ -38,7 +38,13 @@ fn policy_byte(version: u64, i: usize) -> u8 {
 /// Starts this test binary as `role`, with `service` to use; its stdin stays open until dropped.
 fn child(role: &str, service: &str) -> Child {
     Command::new(std::env::current_exe().unwrap())
-        .args(["--exact", "child_entry", "--nocapture", "--test-threads", "1"])
+        .args([
+            "--exact",
+            "child_entry",
+            "--nocapture",
+            "--test-threads",
+            "1",
+        ])
         .env(ROLE, role)
         .env(SERVICE, service)
         .stdin(Stdio::piped())
@@ -102,6 +108,18 @@ fn child_entry() {
             std::io::stdout().flush().unwrap();
             // Keep the service until the reader is done (it closes stdin).
             let _ = std::io::stdin().read_to_end(&mut Vec::new());
+        }
+        "killed" => {
+            // Holds a node and a service of run `service` until it is killed with SIGKILL.
+            let (node, _) = ShmNode::create(&service, "victim").unwrap();
+            let names = ServiceNames::new(&service, "1");
+            let _subscriber =
+                TransitionSubscriber::create(node, &names.transitions, TransitionLimits::default())
+                    .unwrap();
+            println!("ready");
+            std::io::stdout().flush().unwrap();
+            let _ = std::io::stdin().read_to_end(&mut Vec::new());
+            std::thread::sleep(Duration::from_secs(600));
         }
         other => panic!("unknown role {other}"),
     }
@@ -177,7 +195,10 @@ fn policy_versions_only_grow_and_are_never_torn() {
     let mut line = String::new();
     while !line.trim_end().ends_with("ready") {
         line.clear();
-        assert!(stdout.read_line(&mut line).unwrap() > 0, "the publisher exited");
+        assert!(
+            stdout.read_line(&mut line).unwrap() > 0,
+            "the publisher exited"
+        );
     }
     let (node, _) = ShmNode::create("shm-test", "policy-reader").unwrap();
     let subscriber = PolicySubscriber::open(node, &names.policy).unwrap();
@@ -203,4 +224,46 @@ fn policy_versions_only_grow_and_are_never_torn() {
     assert!(seen >= 1);
     drop(stdin);
     assert!(publisher.wait().unwrap().success());
+}
+
+#[test]
+fn opening_a_service_that_is_not_there_names_it() {
+    let names = ServiceNames::new("shm-test", &new_run_id());
+    let (node, _) = ShmNode::create("shm-test", "nobody").unwrap();
+    let e = TransitionPublisher::open(node, &names.transitions, 1, 8).unwrap_err();
+    let text = e.to_string();
+    assert!(
+        text.contains(&format!(
+            "cannot open the iceoryx2 service '{}'",
+            names.transitions
+        )),
+        "{text}"
+    );
+    let (node, _) = ShmNode::create("shm-test", "nobody").unwrap();
+    let e = PolicySubscriber::open(node, &names.policy).unwrap_err();
+    assert!(e.to_string().contains(&names.policy), "{e}");
+}
+
+#[test]
+fn a_killed_processs_node_and_service_are_cleaned_up_by_the_next_process_of_its_run() {
+    let run = format!("shm-test-kill-{}", new_run_id());
+    let mut victim = child("killed", &run);
+    let mut stdout = BufReader::new(victim.stdout.take().unwrap());
+    let mut line = String::new();
+    while !line.trim_end().ends_with("ready") {
+        line.clear();
+        assert!(
+            stdout.read_line(&mut line).unwrap() > 0,
+            "the victim exited"
+        );
+    }
+    victim.kill().unwrap();
+    victim.wait().unwrap();
+
+    let (node, cleanup) = ShmNode::create(&run, "successor").unwrap();
+    assert_eq!(cleanup.of_run, 1, "{cleanup:?}");
+    assert_eq!(cleanup.failed, 0, "{cleanup:?}");
+    // The dead process's service is gone with it: the same name can be created again.
+    let names = ServiceNames::new(&run, "1");
+    TransitionSubscriber::create(node, &names.transitions, TransitionLimits::default()).unwrap();
 }

@@ -573,6 +573,8 @@ impl Session {
             env_steps: h.env_steps,
             updates: h.updates,
             policy_version: h.policy_version,
+            shm_records: h.shm_records,
+            grpc_records: h.grpc_records,
         };
     }
 

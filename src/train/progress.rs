@@ -166,6 +166,12 @@ pub struct Summary {
     pub expired_leases: u64,
     pub refused_reports: u64,
     pub actor_respawns: u64,
+    /// Transition records the learner took in per transport (its Health; the last session's
+    /// learner process): same-host actors use shared memory, remote ones gRPC.
+    #[serde(default)]
+    pub transitions_shm: u64,
+    #[serde(default)]
+    pub transitions_grpc: u64,
     pub evals: Vec<CompleteEval>,
 }
 
@@ -175,6 +181,9 @@ pub struct LearnerCounters {
     pub env_steps: u64,
     pub updates: u64,
     pub policy_version: u64,
+    /// Records taken in per transport.
+    pub shm_records: u64,
+    pub grpc_records: u64,
 }
 
 /// Builds the summary of a run from its trackers and the curriculum server's last state.
@@ -219,6 +228,8 @@ pub fn summarize(
         expired_leases: view.expired_leases,
         refused_reports: r.duplicate + r.expired + r.unknown + r.epoch_mismatch + r.malformed,
         actor_respawns: progress.actor_respawns,
+        transitions_shm: learner.shm_records,
+        transitions_grpc: learner.grpc_records,
         evals: evals.evals(),
     }
 }
@@ -366,9 +377,12 @@ mod tests {
             env_steps: 3100,
             updates: 1550,
             policy_version: 40,
+            shm_records: 3000,
+            grpc_records: 100,
         };
         let s = summarize(&view, &t, learner, &progress, 60.0, Ending::Budget);
         assert_eq!(s.stage_1_env_steps, Some(1500));
+        assert_eq!((s.transitions_shm, s.transitions_grpc), (3000, 100));
         assert_eq!(s.to_success[0].env_steps, Some(2000));
         assert_eq!(s.to_success[1].env_steps, Some(3000));
         assert_eq!(s.to_success[1].wall_s, Some(7.0));

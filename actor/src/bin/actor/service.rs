@@ -234,7 +234,11 @@ fn open_transport(
     let own_host = rfcl_shm::host_identity();
     match shm::decide(opts.transport, info, &own_host)? {
         Plan::Grpc { why } => {
-            tracing::info!(actor = opts.id, transport = "grpc", "transport: gRPC ({why})");
+            tracing::info!(
+                actor = opts.id,
+                transport = "grpc",
+                "transport: gRPC ({why})"
+            );
             Ok(None)
         }
         Plan::Shm { required } => match ShmLink::open(info, opts.id, batch, record_bytes) {

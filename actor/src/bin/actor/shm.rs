@@ -78,8 +78,14 @@ pub struct ShmLink {
 impl ShmLink {
     /// Opens the learner's transition and policy services (cleaning up dead nodes of the run
     /// first). Sized for batches of `batch` records of `record_bytes`.
-    pub fn open(info: &v1::RunInfo, actor_id: u32, batch: usize, record_bytes: usize) -> Result<Self> {
-        let (node, cleanup) = ShmNode::create(&info.run_name, &format!("actor-{actor_id}-transitions"))?;
+    pub fn open(
+        info: &v1::RunInfo,
+        actor_id: u32,
+        batch: usize,
+        record_bytes: usize,
+    ) -> Result<Self> {
+        let (node, cleanup) =
+            ShmNode::create(&info.run_name, &format!("actor-{actor_id}-transitions"))?;
         if cleanup.of_run + cleanup.others > 0 {
             tracing::info!(
                 of_this_run = cleanup.of_run,
@@ -248,8 +254,16 @@ mod tests {
 
     fn info(served: bool, host: &str) -> v1::RunInfo {
         v1::RunInfo {
-            shm_transitions_service: if served { "rfcl/r/1/transitions".into() } else { String::new() },
-            shm_policy_service: if served { "rfcl/r/1/policy".into() } else { String::new() },
+            shm_transitions_service: if served {
+                "rfcl/r/1/transitions".into()
+            } else {
+                String::new()
+            },
+            shm_policy_service: if served {
+                "rfcl/r/1/policy".into()
+            } else {
+                String::new()
+            },
             learner_host_identity: host.into(),
             ..Default::default()
         }
