@@ -87,7 +87,7 @@ pub struct Sac {
     actor_opt: Adam,
     critic_opt: Adam,
     temp_opt: Adam,
-    /// (target, online) critic parameters: both flattened in name order (one pair).
+    /// (target, online) critic parameters, matched by name.
     polyak_pairs: Vec<(Tensor, Tensor)>,
     rng: ChaCha8Rng,
 }
@@ -166,15 +166,16 @@ impl Sac {
             &Tensor::from(cfg.initial_temperature.ln()).to_kind(kind),
         );
 
+        let online = critic_vs.variables();
+        let polyak_pairs: Vec<(Tensor, Tensor)> = target_vs
+            .variables()
+            .into_iter()
+            .map(|(name, target)| (target, online[&name].shallow_clone()))
+            .collect();
+
         let adam = |vs: &nn::VarStore, lr: f64| {
             Adam::new(vs, lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps)
         };
-        let critic_opt = adam(&critic_vs, cfg.critic_lr);
-        // Target and online critic flattened in the same name order: one Polyak op for all.
-        let polyak_pairs = vec![(
-            crate::adam::flatten_variables(&target_vs),
-            critic_opt.flat_params().shallow_clone(),
-        )];
         Ok(Self {
             obs_dim,
             action_dim,
@@ -183,7 +184,7 @@ impl Sac {
             device,
             target_entropy: cfg.target_entropy.unwrap_or(-(action_dim as f64) / 2.0),
             actor_opt: adam(&actor_vs, cfg.actor_lr),
-            critic_opt,
+            critic_opt: adam(&critic_vs, cfg.critic_lr),
             temp_opt: adam(&temp_vs, cfg.temp_lr),
             actor_vs,
             critic_vs,
