@@ -71,6 +71,24 @@ fn pointmaze_test_config_trains_to_its_bar() {
         "{health:?}"
     );
     assert_eq!(state["stage"], 1, "a fresh run starts in stage 1");
+    // Both actors are served: the learner's shared-memory ingest takes frames from every
+    // publisher in turn (one publisher once took nearly all the learner's capacity).
+    let shares = wait_for(Duration::from_secs(300), || {
+        let state = curriculum_state(&processes)?;
+        let steps: Vec<u64> = state["actors"]
+            .as_array()?
+            .iter()
+            .filter(|a| a["actor_id"].as_u64() < Some(2))
+            .filter_map(|a| a["env_steps"].as_u64())
+            .collect();
+        (steps.len() == 2 && steps.iter().sum::<u64>() >= 20_000).then_some(steps)
+    })
+    .unwrap_or_else(|| panic!("the actors did not reach 20,000 env steps:\n{}", training.stderr()));
+    let total: u64 = shares.iter().sum();
+    assert!(
+        shares.iter().all(|&s| s * 4 >= total),
+        "each of the 2 actors takes at least a quarter of the env steps: {shares:?}"
+    );
 
     let status = training.wait(Duration::from_secs(900));
     let stderr = training.stderr();

@@ -19,7 +19,7 @@
 //!   one from the trainer's `watch` channel, as one immutable sample shared by every subscriber.
 //!
 //! Both threads end when the learner stops (the ingest thread also when the queue closes).
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::thread::JoinHandle;
@@ -222,34 +222,51 @@ struct IngestLoop {
 }
 
 impl IngestLoop {
+    /// Takes every frame the service holds now into `pending` (copied out, so the shared memory
+    /// goes back at once). iceoryx2's `receive` looks at its publishers in a fixed order, so taking
+    /// one frame at a time lets a publisher that always has a frame ready starve the others
+    /// (measured: an actor stuck at 680 env steps while the other took 200,000). Draining all of
+    /// them, then handing them on in arrival order, serves every actor once per round; `pending`
+    /// never holds more than each publisher's queue (`TransitionLimits::queue_frames`).
+    fn drain(&mut self, pending: &mut VecDeque<IngestItem>) -> Result<usize, rfcl_shm::ShmError> {
+        let mut frames = 0;
+        while let Some(frame) = self.subscriber.receive()? {
+            frames += 1;
+            if let Some(item) = self.take(&frame) {
+                pending.push_back(item);
+            }
+        }
+        Ok(frames)
+    }
+
     fn run(mut self, stopping: watch::Receiver<bool>) {
         let mut idle = 0u32;
+        let mut pending = VecDeque::new();
         while !*stopping.borrow() {
-            let frame = match self.subscriber.receive() {
-                Ok(Some(frame)) => frame,
-                Ok(None) => {
+            if pending.is_empty() {
+                match self.drain(&mut pending) {
+                    Ok(0) => {
                     // Spin briefly (frames come in bursts), then sleep: short sleeps while frames
                     // were recent, longer ones once the service has been quiet for a while.
-                    idle = idle.saturating_add(1);
-                    match idle {
-                        0..16 => std::thread::yield_now(),
-                        16..512 => std::thread::sleep(IDLE_SLEEP),
-                        _ => std::thread::sleep(IDLE_SLEEP * 5),
+                        idle = idle.saturating_add(1);
+                        match idle {
+                            0..16 => std::thread::yield_now(),
+                            16..512 => std::thread::sleep(IDLE_SLEEP),
+                            _ => std::thread::sleep(IDLE_SLEEP * 5),
+                        }
+                        continue;
                     }
-                    continue;
+                    Ok(_) => idle = 0,
+                    Err(e) => {
+                        self.warn(format_args!("{e}"));
+                        std::thread::sleep(Duration::from_millis(10));
+                        continue;
+                    }
                 }
-                Err(e) => {
-                    self.warn(format_args!("{e}"));
-                    std::thread::sleep(Duration::from_millis(10));
-                    continue;
-                }
-            };
-            idle = 0;
-            let Some(item) = self.take(&frame) else {
+            }
+            let Some(item) = pending.pop_front() else {
                 continue;
             };
-            // Hand the shared memory back before waiting on the queue.
-            drop(frame);
             if self.queued >= MAX_QUEUED {
                 // Items report when they are handled (or discarded at the end).
                 let handled = self.queued - MAX_QUEUED + 1;
