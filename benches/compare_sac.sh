@@ -11,7 +11,8 @@
 # cores with taskset and with N compute threads. Before each round it waits (up to --max-wait-s)
 # for the 1-minute load average to drop below --max-load, because other processes on a 2-core
 # machine make either side several times slower; the load seen at each start is in the output.
-# OMP_WAIT_POLICY defaults to PASSIVE, as `rfcl train` starts the learner.
+# OMP_WAIT_POLICY defaults to ACTIVE (libgomp's spinning, best on an idle machine); pass
+# OMP_WAIT_POLICY=PASSIVE to measure the learner as `rfcl train` starts it.
 #
 # Needs: the venv with python/requirements-bench.txt (jax, flax, optax). Prints one JSON object:
 # every run's report, the loads, and per round and schedule the ratio rust / jax.
@@ -48,7 +49,9 @@ fi
 # shellcheck disable=SC1091
 source .venv/bin/activate
 export LIBTORCH_USE_PYTORCH=1 PYO3_PYTHON=$PWD/.venv/bin/python
-export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
+# libgomp's own default (spinning) unless the caller sets OMP_WAIT_POLICY: on an idle machine
+# PASSIVE costs libtorch ~38% here (55 -> 34 updates/s, benches/RESULTS.md).
+export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-ACTIVE}
 cores="0-$((threads - 1))"
 out=$(mktemp -d)
 trap 'rm -rf "$out"' EXIT
@@ -61,6 +64,9 @@ for line in sys.stdin:
     if m.get("reason") == "compiler-artifact" and m["target"]["name"] == "sac_update" and m.get("executable"):
         print(m["executable"])')
 [[ -x "$bench_bin" ]] || { echo "compare_sac.sh: the sac_update bench did not build" >&2; exit 1; }
+# What was built: the commit and how many files differed from it.
+git_head=$(git rev-parse --short HEAD 2>/dev/null || echo unknown)
+git_dirty=$(git status --porcelain 2>/dev/null | grep -c . || true)
 
 load1() { cut -d' ' -f1 /proc/loadavg; }
 wait_quiet() {
@@ -89,8 +95,6 @@ for round in $(seq 1 "$rounds"); do
         --window-seconds "$seconds" --schedules "$schedules" > "$out/jax_$round.json"
 done
 
-git_head=$(git rev-parse --short HEAD 2>/dev/null || echo unknown)
-git_dirty=$(git status --porcelain 2>/dev/null | grep -c . || true)
 python - "$out" "$rounds" "$bench_bin" "$git_head" "$git_dirty" <<'EOF'
 import json, os, platform, sys, time
 out, rounds = sys.argv[1], int(sys.argv[2])

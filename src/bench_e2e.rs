@@ -78,10 +78,17 @@ fn rate_from_metrics(path: &Path, actors: u32) -> Result<E2eResult> {
             .position(|h| *h == name)
             .with_context(|| format!("{}: no column '{name}'", path.display()))
     };
-    let (steps_col, time_col, updates_col) =
-        (column("env_steps")?, column("time/total")?, column("train/training_steps")?);
+    let (steps_col, time_col, updates_col) = (
+        column("env_steps")?,
+        column("time/total")?,
+        column("train/training_steps")?,
+    );
     let rows: Vec<Vec<f64>> = lines
-        .map(|l| l.split(',').map(|v| v.parse().unwrap_or(f64::NAN)).collect())
+        .map(|l| {
+            l.split(',')
+                .map(|v| v.parse().unwrap_or(f64::NAN))
+                .collect()
+        })
         .filter(|r: &Vec<f64>| r.len() == header.len())
         .collect();
     let (Some(first), Some(last)) = (rows.first(), rows.last()) else {
@@ -90,7 +97,10 @@ fn rate_from_metrics(path: &Path, actors: u32) -> Result<E2eResult> {
     let steps = last[steps_col] - first[steps_col];
     let seconds = last[time_col] - first[time_col];
     if rows.len() < 2 || seconds <= 0.0 {
-        bail!("{}: fewer than two metrics rows: run longer (--seconds)", path.display());
+        bail!(
+            "{}: fewer than two metrics rows: run longer (--seconds)",
+            path.display()
+        );
     }
     Ok(E2eResult {
         actors,

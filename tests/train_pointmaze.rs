@@ -83,7 +83,12 @@ fn pointmaze_test_config_trains_to_its_bar() {
             .collect();
         (steps.len() == 2 && steps.iter().sum::<u64>() >= 20_000).then_some(steps)
     })
-    .unwrap_or_else(|| panic!("the actors did not reach 20,000 env steps:\n{}", training.stderr()));
+    .unwrap_or_else(|| {
+        panic!(
+            "the actors did not reach 20,000 env steps:\n{}",
+            training.stderr()
+        )
+    });
     let total: u64 = shares.iter().sum();
     assert!(
         shares.iter().all(|&s| s * 4 >= total),

@@ -23,8 +23,8 @@ use rfcl_learner::policy::PolicyNet;
 use serde::Serialize;
 
 use crate::env::Env;
-use crate::policy::PolicyHandle;
 use crate::pointmaze::PointMaze;
+use crate::policy::PolicyHandle;
 use crate::rollout::{Rollout, RolloutSettings, StepOutput};
 
 /// The measurement (`rfcl bench actor` prints it as JSON).

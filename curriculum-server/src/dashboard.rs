@@ -224,9 +224,17 @@ pub fn maze_heatmap_svg(maze: &MazeView) -> String {
             let caption = if maze.snapshots.is_empty() {
                 "no eval yet".to_string()
             } else {
-                format!("{} steps: {:.0}%", snap.env_steps, snap.success_rate * 100.0)
+                format!(
+                    "{} steps: {:.0}%",
+                    snap.env_steps,
+                    snap.success_rate * 100.0
+                )
             };
-            root.draw_text(&caption, &("sans-serif", 15).into_font().color(&BLACK), (x0, 8))?;
+            root.draw_text(
+                &caption,
+                &("sans-serif", 15).into_font().color(&BLACK),
+                (x0, 8),
+            )?;
             let grid = root
                 .clone()
                 .shrink((x0, caption_h as i32), (panel_w, rows * MAZE_CELL_PX));
@@ -236,7 +244,11 @@ pub fn maze_heatmap_svg(maze: &MazeView) -> String {
                 for (c, ch) in line.chars().enumerate() {
                     let color = match ch {
                         '#' => RGBColor(60, 60, 60).filled(),
-                        _ => match snap.cells.iter().find(|m| (m.row, m.col) == (r as u32, c as u32)) {
+                        _ => match snap
+                            .cells
+                            .iter()
+                            .find(|m| (m.row, m.col) == (r as u32, c as u32))
+                        {
                             Some(m) if m.episodes > 0 => {
                                 success_color(m.successes as f64 / m.episodes as f64).filled()
                             }
@@ -688,8 +700,18 @@ mod tests {
             env_steps: steps,
             success_rate: successes as f64 / 2.0,
             cells: vec![
-                MazeCell { row: 1, col: 2, episodes: 1, successes: 1 },
-                MazeCell { row: 1, col: 3, episodes: 1, successes: successes - 1 },
+                MazeCell {
+                    row: 1,
+                    col: 2,
+                    episodes: 1,
+                    successes: 1,
+                },
+                MazeCell {
+                    row: 1,
+                    col: 3,
+                    episodes: 1,
+                    successes: successes - 1,
+                },
             ],
         };
         MazeView {
@@ -706,7 +728,10 @@ mod tests {
         assert!(svg.starts_with("<svg"), "{svg}");
         // Background + 12 squares in each of the two panels.
         assert!(svg.matches("<rect").count() >= 1 + 2 * 12, "{svg}");
-        assert!(svg.contains("5000 steps: 50%") && svg.contains("9000 steps: 100%"), "{svg}");
+        assert!(
+            svg.contains("5000 steps: 50%") && svg.contains("9000 steps: 100%"),
+            "{svg}"
+        );
         // The goal (red circle) in each panel and a demo path.
         assert_eq!(svg.matches("<circle").count(), 2, "{svg}");
         assert!(svg.contains("<polyline"), "{svg}");

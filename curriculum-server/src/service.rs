@@ -9,9 +9,9 @@ use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use rfcl_core::config::{RunConfig, Suite};
-use rfcl_core::maze::Cell;
 use rfcl_core::demo::DemoSet;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
+use rfcl_core::maze::Cell;
 use rfcl_proto::v1;
 use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
@@ -727,7 +727,8 @@ mod tests {
             success: vec![false, false, true],
             reset_seed: Some(0),
         }];
-        let mut state = ServerState::new(Curriculum::new(&RunConfig::default(), &metas).unwrap(), 0.0);
+        let mut state =
+            ServerState::new(Curriculum::new(&RunConfig::default(), &metas).unwrap(), 0.0);
         let cells = rfcl_core::maze::maze().start_cells().len() as u64;
         // Ten complete evals (one episode per start cell); version v solves cells with seed < v.
         for v in 1..=10u64 {
@@ -741,7 +742,13 @@ mod tests {
             }
         }
         // A running eval that has not covered every cell yet is left out.
-        state.stats.evals.entry(11).or_default().outcomes.push((0, true));
+        state
+            .stats
+            .evals
+            .entry(11)
+            .or_default()
+            .outcomes
+            .push((0, true));
         let demos = DemoResets {
             state_dim: 5,
             states: vec![vec![7.0, 1.0, 0.0, 0.0, 0.0, 6.0, 1.0, 0.0, 0.0, 0.0]],

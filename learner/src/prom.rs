@@ -326,7 +326,8 @@ impl Collector for crate::ingest::IngestCounters {
     fn encode(&self, mut e: DescriptorEncoder) -> std::fmt::Result {
         use crate::ingest::{Transport, TransportCounts};
         use std::sync::atomic::{AtomicU64, Ordering};
-        let fields: [(&str, &str, fn(&TransportCounts) -> &AtomicU64); 4] = [
+        type Pick = fn(&TransportCounts) -> &AtomicU64;
+        let fields: [(&str, &str, Pick); 4] = [
             (
                 "ingest_records",
                 "Transition records validated and queued, per transport",

@@ -246,8 +246,8 @@ impl IngestLoop {
             if pending.is_empty() {
                 match self.drain(&mut pending) {
                     Ok(0) => {
-                    // Spin briefly (frames come in bursts), then sleep: short sleeps while frames
-                    // were recent, longer ones once the service has been quiet for a while.
+                        // Spin briefly (frames come in bursts), then sleep: short sleeps while frames
+                        // were recent, longer ones once the service has been quiet for a while.
                         idle = idle.saturating_add(1);
                         match idle {
                             0..16 => std::thread::yield_now(),

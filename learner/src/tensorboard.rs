@@ -189,6 +189,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::manual_rotate)] // spelled out as TensorFlow's crc32c::Mask writes it
     fn masked_crc_matches_tensorflow() {
         // crc32c("123456789") = 0xE3069283 (RFC 3720's check value), masked as TensorFlow's
         // crc32c::Mask does: rotate right by 15, add 0xa282ead8.

@@ -167,7 +167,10 @@ async fn metrics_endpoint_while_training_and_tensorboard_events_equal_to_metrics
     );
     assert!(sample(&body, "rfcl_learner_resident_memory_bytes") > 1e6);
     assert_eq!(
-        sample(&body, "rfcl_learner_ingest_records_total{transport=\"grpc\"}"),
+        sample(
+            &body,
+            "rfcl_learner_ingest_records_total{transport=\"grpc\"}"
+        ),
         PUSHED as f64
     );
 
