@@ -64,8 +64,8 @@ enum Command {
     },
     /// Benchmarks (results go to benches/RESULTS.md).
     Bench {
-        /// What to measure: curriculum (Acquire + Report pairs over gRPC) or actor (the actor's
-        /// overhead over a bare env loop). The learner's: `cargo bench -p rfcl-learner`.
+        /// What to measure: curriculum (Acquire + Report pairs over gRPC), learner (SAC updates/s),
+        /// actor (the actor's overhead over a bare env loop) or e2e (whole runs, 1, 2, 4 actors).
         target: String,
         /// Concurrent clients (curriculum).
         #[arg(long, default_value_t = 64)]
@@ -196,28 +196,49 @@ fn run(cli: Cli) -> Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
-        Command::Config { command: ConfigCommand::Show { file, overrides } } => {
+        Command::Config {
+            command: ConfigCommand::Show { file, overrides },
+        } => {
             let cfg = rfcl_core::config::resolve_file(&file, &overrides)?;
             print!("{}", rfcl_core::config::to_yaml(&cfg));
             Ok(ExitCode::SUCCESS)
         }
-        Command::Demos { command: DemosCommand::Inspect { file } } => {
+        Command::Demos {
+            command: DemosCommand::Inspect { file },
+        } => {
             let demos = rfcl_core::demo::DemoSet::load(&file)?;
             print!("{}", demos.summary());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Demos { command: DemosCommand::Generate { env, num, out, seed } } => {
-            generate_demos(&env, num, &out, seed).map(|()| ExitCode::SUCCESS)
-        }
-        Command::Demos { command: DemosCommand::Convert { input, out, suite } } => {
+        Command::Demos {
+            command:
+                DemosCommand::Generate {
+                    env,
+                    num,
+                    out,
+                    seed,
+                },
+        } => generate_demos(&env, num, &out, seed).map(|()| ExitCode::SUCCESS),
+        Command::Demos {
+            command: DemosCommand::Convert { input, out, suite },
+        } => {
             if demos_suites::handles_convert(&input, &suite) {
                 return demos_suites::convert(&input, &out, &suite).map(|()| ExitCode::SUCCESS);
             }
             demos_sim::convert(&input, &out).map(|()| ExitCode::SUCCESS)
         }
-        Command::Bench { target, clients, seconds, connect, config, envs, actors } => match target.as_str() {
+        Command::Bench {
+            target,
+            clients,
+            seconds,
+            connect,
+            config,
+            envs,
+            actors,
+        } => match target.as_str() {
             "curriculum" => bench_curriculum(clients, seconds, connect).map(|()| ExitCode::SUCCESS),
             "actor" => bench_actor(&config, envs, seconds).map(|()| ExitCode::SUCCESS),
+            "learner" => bench_learner(seconds).map(|()| ExitCode::SUCCESS),
             "e2e" => {
                 let results = bench_e2e::run(&config, &actors, seconds)?;
                 let json = serde_json::json!({
@@ -230,7 +251,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 println!("{}", serde_json::to_string_pretty(&json)?);
                 Ok(ExitCode::SUCCESS)
             }
-            other => bail!("`rfcl bench {other}`: expected curriculum, actor or e2e (the learner's bench is `cargo bench -p rfcl-learner`)"),
+            other => bail!("`rfcl bench {other}`: expected curriculum, learner, actor or e2e"),
         },
     }
 }
@@ -260,6 +281,19 @@ fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Resu
         out.display(),
         rfcl_core::demo::DemoSet::sidecar_path(out).display()
     );
+    Ok(())
+}
+
+/// Full SAC updates per second (rfcl_learner::bench: obs 42, act 8, batch 256, [256, 256, 256],
+/// 10 critics; G80/F20 and G16/F1), best of 3 windows per schedule within about `seconds`. The
+/// side-by-side comparison with JAX is benches/compare_sac.sh.
+fn bench_learner(seconds: f64) -> Result<()> {
+    let cfg = rfcl_learner::bench::BenchConfig {
+        window_seconds: (seconds / 6.0).max(1.0),
+        ..Default::default()
+    };
+    let report = rfcl_learner::bench::run(&cfg)?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
 }
 
