@@ -10,7 +10,7 @@
 //!   and the eval actor take part and the learner receives the transitions; no worker outlives it.
 mod train_support;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use rfcl_actor::env::Env;
@@ -20,30 +20,6 @@ use train_support::*;
 
 fn rfcl() -> &'static str {
     env!("CARGO_BIN_EXE_rfcl")
-}
-
-/// `rfcl demos generate --env PickCube-v1 -n N --out DIR/pick_cube.h5`.
-fn generate_pick_cube(dir: &Path, n: u32) -> PathBuf {
-    let out = dir.join("pick_cube.h5");
-    let result = Command::new(rfcl())
-        .args([
-            "demos",
-            "generate",
-            "--env",
-            "PickCube-v1",
-            "-n",
-            &n.to_string(),
-            "--out",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        result.status.success(),
-        "rfcl demos generate failed: {}",
-        String::from_utf8_lossy(&result.stderr)
-    );
-    out
 }
 
 fn inspect(file: &Path) -> String {
@@ -64,7 +40,7 @@ fn inspect(file: &Path) -> String {
 fn generated_demos_load_and_replay_their_success_flags() {
     require_services();
     let dir = tempfile::tempdir().unwrap();
-    let file = generate_pick_cube(dir.path(), 2);
+    let file = generate_env_demos("PickCube-v1", 2, &dir.path().join("pick_cube.h5"));
     let report = inspect(&file);
     assert!(
         report.contains("env: PickCube-v1  control_mode: pd_joint_delta_pos")
@@ -173,7 +149,7 @@ fn generated_demos_load_and_replay_their_success_flags() {
 #[test]
 fn pick_cube_smoke_run_uses_every_process() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_pick_cube(dir.path(), 2);
+    let demos = generate_env_demos("PickCube-v1", 2, &dir.path().join("pick_cube.h5"));
     sim::smoke_run(
         "configs/maniskill3/pick_cube.yml",
         &demos,

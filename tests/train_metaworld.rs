@@ -5,43 +5,16 @@
 //! part and the learner receives the transitions; no process outlives the run.
 mod train_support;
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
-
 use train_support::*;
-
-fn rfcl() -> &'static str {
-    env!("CARGO_BIN_EXE_rfcl")
-}
-
-/// `rfcl demos generate --env metaworld/pick-place-v3 -n N --out DIR/pick_place.h5`.
-fn generate_pick_place(dir: &Path, n: u32) -> PathBuf {
-    let out = dir.join("pick_place.h5");
-    let result = Command::new(rfcl())
-        .args([
-            "demos",
-            "generate",
-            "--env",
-            "metaworld/pick-place-v3",
-            "-n",
-            &n.to_string(),
-        ])
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        result.status.success(),
-        "rfcl demos generate failed: {}",
-        String::from_utf8_lossy(&result.stderr)
-    );
-    out
-}
 
 #[test]
 fn pick_place_smoke_run_uses_every_process() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_pick_place(dir.path(), 2);
+    let demos = generate_env_demos(
+        "metaworld/pick-place-v3",
+        2,
+        &dir.path().join("pick_place.h5"),
+    );
     sim::smoke_run(
         "configs/metaworld/pick_place.yml",
         &demos,

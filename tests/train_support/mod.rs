@@ -41,22 +41,30 @@ pub fn require_services() {
 
 /// 5 PointMaze demos in `dir`, written by `rfcl demos generate`.
 pub fn generate_demos(dir: &Path) -> PathBuf {
-    let out = dir.join("demos.h5");
-    let status = Command::new(rfcl())
+    generate_env_demos("pointmaze", 5, &dir.join("demos.h5"))
+}
+
+/// `rfcl demos generate --env ENV -n N --out OUT`; returns `out`.
+pub fn generate_env_demos(env: &str, n: u32, out: &Path) -> PathBuf {
+    let result = Command::new(rfcl())
         .args([
             "demos",
             "generate",
             "--env",
-            "pointmaze",
+            env,
             "-n",
-            "5",
+            &n.to_string(),
             "--out",
         ])
-        .arg(&out)
-        .status()
+        .arg(out)
+        .output()
         .unwrap();
-    assert!(status.success(), "rfcl demos generate failed");
-    out
+    assert!(
+        result.status.success(),
+        "rfcl demos generate --env {env} failed: {}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+    out.to_path_buf()
 }
 
 /// A running `rfcl train`: stdout lines are collected, stderr goes to a file.
