@@ -1,6 +1,7 @@
 //! `rfcl eval RUN_DIR`: the run's exported policy (`RUN_DIR/policy.safetensors`, written by the
 //! learner) on N held-out seeds of the task's true initial-state distribution, with the
-//! deterministic policy tanh(μ) (spec 5.7), in this process.
+//! deterministic policy tanh(μ) (spec 5.7), in this process. With `train.data_action_scale` the
+//! env gets a / s, s from `RUN_DIR/policy.json`'s `action_scale` (spec 6.4).
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
@@ -78,18 +79,21 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
             weights_path.display()
         )
     })?;
+    // Spec 6.4: with train.data_action_scale the export records s and the env gets a / s.
     let description = run_dir.join("policy.json");
-    if description.is_file() {
-        let desc = PolicyDescription::from_json(&std::fs::read_to_string(&description)?)
-            .with_context(|| format!("reading {}", description.display()))?;
-        if desc.action_scale.is_some() {
-            bail!(
-                "the policy in {} acts with train.data_action_scale (spec 6.4), which rfcl eval \
-                 cannot apply yet",
-                run_dir.display()
-            );
-        }
-    }
+    let action_scale = if description.is_file() {
+        PolicyDescription::from_json(&std::fs::read_to_string(&description)?)
+            .with_context(|| format!("reading {}", description.display()))?
+            .action_scale
+    } else if cfg.train.data_action_scale.is_some() {
+        bail!(
+            "the run sets train.data_action_scale (spec 6.4) but {} is missing: it records the \
+             action scale the policy acts with (the learner exports it with policy.safetensors)",
+            description.display()
+        );
+    } else {
+        None
+    };
     let (obs_dim, action_dim) = rfcl_actor::suite::native_dims(&cfg.env)?;
     let env = rfcl_actor::suite::make_env(
         &cfg.env,
@@ -101,6 +105,8 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
         .eval_env
         .max_episode_steps
         .unwrap_or(cfg.env.max_episode_steps);
+    // One observation per forward pass: libtorch's thread pool only spins (OpenMP) on it.
+    rfcl_actor::net::configure_inference_threads();
     let net = PolicyNet::from_safetensors(&weights, &cfg, env.obs_dim(), env.action_dim())
         .with_context(|| format!("loading {}", weights_path.display()))?;
     let mut policy = PolicyHandle {
@@ -116,7 +122,9 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
             num_seed_steps: 0,
             deterministic: true,
         },
-    );
+    )
+    .with_action_scale(action_scale)
+    .with_context(|| format!("the action_scale of {}", description.display()))?;
     let first_seed = cfg.eval_env.seed_offset + HELD_OUT_SEED_BASE;
     let mut out = StepOutput::default();
     let (mut at_end, mut once, mut ret, mut len) = (0u32, 0u32, 0.0f64, 0u64);
@@ -164,4 +172,71 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
         mean_length: len as f64 / n,
         outcomes,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rfcl_learner::policy::{encode_actor, tensor_names, PolicyShape, FORMAT};
+
+    /// A PointMaze run directory with `train.data_action_scale` set and an exported (untrained)
+    /// policy whose `policy.json` records `scale` (none: no `policy.json`).
+    fn scaled_run(dir: &Path, scale: Option<Vec<f32>>) {
+        std::fs::write(
+            dir.join("config.yml"),
+            format!(
+                "base_config: {}/configs/pointmaze.yml\nname: eval_scale\n\
+                 train:\n  data_action_scale: 1.25\nsac:\n  critic_ensemble: 2\n  target_pool: 2\n\
+                 network:\n  actor_features: [16, 16]\n  critic_features: [16, 16]\n",
+                env!("CARGO_MANIFEST_DIR")
+            ),
+        )
+        .unwrap();
+        let cfg = rfcl_core::config::resolve_file(&dir.join("config.yml"), &[]).unwrap();
+        let (obs, act) = (
+            rfcl_actor::pointmaze::OBS_DIM,
+            rfcl_actor::pointmaze::ACTION_DIM,
+        );
+        let sac = rfcl_learner::Sac::new(obs, act, &cfg.sac, &cfg.network, 1).unwrap();
+        std::fs::write(dir.join("policy.safetensors"), encode_actor(&sac).unwrap()).unwrap();
+        let Some(scale) = scale else { return };
+        let shape = PolicyShape::from_config(&cfg, obs, act);
+        let desc = PolicyDescription {
+            format: FORMAT.into(),
+            env_id: cfg.env.env_id.clone(),
+            tensors: tensor_names(shape.actor_features.len()),
+            shape,
+            activation: "relu".into(),
+            action_scale: Some(scale),
+            policy_version: 1,
+            env_steps: 0,
+        };
+        std::fs::write(dir.join("policy.json"), desc.to_json()).unwrap();
+    }
+
+    /// Spec 6.4: `rfcl eval` acts with the exported scale, and refuses a scale that does not fit
+    /// the env or a scaled run without its `policy.json`.
+    #[test]
+    fn eval_applies_the_exported_action_scale() {
+        let dir = tempfile::tempdir().unwrap();
+        scaled_run(dir.path(), Some(vec![0.8, 1.6]));
+        let report = eval(dir.path(), 1).unwrap();
+        assert_eq!(report.episodes, 1);
+        assert_eq!(report.mean_length, rfcl_actor::pointmaze::HORIZON as f64);
+
+        scaled_run(dir.path(), Some(vec![0.8, 1.6, 1.0]));
+        let err = format!("{:#}", eval(dir.path(), 1).unwrap_err());
+        assert!(
+            err.contains("action_scale") && err.contains("3 values for 2 action dimensions"),
+            "{err}"
+        );
+
+        let bare = tempfile::tempdir().unwrap();
+        scaled_run(bare.path(), None);
+        let err = format!("{:#}", eval(bare.path(), 1).unwrap_err());
+        assert!(
+            err.contains("train.data_action_scale") && err.contains("policy.json is missing"),
+            "{err}"
+        );
+    }
 }

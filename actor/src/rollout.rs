@@ -8,7 +8,9 @@
 //!   demo state; other leases reset from the seed (and options) alone.
 //! * **Actions**: uniform in `[-1, 1]^A` during stage 1's seed steps or before any policy arrived
 //!   (spec 5.4, [`explores_uniformly`]), else the policy: stochastic for training, deterministic
-//!   tanh(μ) for evaluation (spec 5.7).
+//!   tanh(μ) for evaluation (spec 5.7). Both are agent actions; with an action scale
+//!   ([`Rollout::with_action_scale`], `train.data_action_scale`) the env gets [`env_action`]'s
+//!   clip(a / s, −1, 1) while the transition keeps the agent action a (spec 6.4).
 //! * **Reward** `+1` on every step whose resulting state is a success state; episodes never end
 //!   on success and `mask` is always 1 (spec 5.6, 12.6).
 //! * **Truncation** after the lease's `time_limit` steps (the stage-1 dynamic limit capped by the
@@ -53,6 +55,22 @@ pub enum RolloutError {
     NoSuchEnv { env: usize, envs: usize },
     #[error("the policy returned {got} action components, the env takes {expected}")]
     PolicyActionDim { expected: usize, got: usize },
+    #[error("the action scale (spec 6.4) does not fit env {env}: {problem}")]
+    ActionScale { env: usize, problem: String },
+}
+
+/// Spec 6.4 (`train.data_action_scale`): the env action for agent action `a` under the
+/// per-dimension scale `s`. The reference wraps the env in RescaleAction to [−s, s] plus
+/// ClipAction, so agent action a maps to env action a / s, clipped to the env's [−1, 1]:
+/// `env_d = clip(a_d / s_d, −1, 1)`. Transitions keep `a` (the learner trains in agent units, as
+/// it does with the rescaled demo actions). `scale` has one value > 0 per action dimension.
+pub fn env_action(action: &[f32], scale: &[f32]) -> Vec<f32> {
+    debug_assert_eq!(action.len(), scale.len());
+    action
+        .iter()
+        .zip(scale)
+        .map(|(a, s)| (a / s).clamp(-1.0, 1.0))
+        .collect()
 }
 
 /// Seed of env `env_index` of actor `actor_id` in a run seeded `run_seed` (ARCHITECTURE.md,
@@ -120,6 +138,8 @@ impl StepOutput {
 /// K envs stepped in lockstep from leases, with the latest policy.
 pub struct Rollout {
     settings: RolloutSettings,
+    /// Spec 6.4's s, when the run rescales actions ([`env_action`]).
+    action_scale: Option<Vec<f32>>,
     slots: Vec<Slot>,
     env_steps: u64,
     episodes: u64,
@@ -140,6 +160,7 @@ impl Rollout {
             .collect();
         Rollout {
             settings,
+            action_scale: None,
             slots,
             env_steps: 0,
             episodes: 0,
@@ -149,6 +170,35 @@ impl Rollout {
 
     pub fn settings(&self) -> RolloutSettings {
         self.settings
+    }
+
+    /// Steps the envs with spec 6.4's action scale s (`train.data_action_scale`; `None`: the env
+    /// gets the agent action as it is): the env gets [`env_action`], transitions keep the agent
+    /// action. `scale` needs one finite value > 0 per action dimension of every env.
+    pub fn with_action_scale(mut self, scale: Option<Vec<f32>>) -> Result<Self, RolloutError> {
+        if let Some(s) = &scale {
+            for (env, slot) in self.slots.iter().enumerate() {
+                let problem = if s.len() != slot.env.action_dim() {
+                    format!(
+                        "{} values for {} action dimensions",
+                        s.len(),
+                        slot.env.action_dim()
+                    )
+                } else if let Some(bad) = s.iter().find(|v| !(v.is_finite() && **v > 0.0)) {
+                    format!("{bad} is not a finite value > 0")
+                } else {
+                    continue;
+                };
+                return Err(RolloutError::ActionScale { env, problem });
+            }
+        }
+        self.action_scale = scale;
+        Ok(self)
+    }
+
+    /// Spec 6.4's s this rollout steps its envs with, if any.
+    pub fn action_scale(&self) -> Option<&[f32]> {
+        self.action_scale.as_deref()
     }
 
     pub fn num_envs(&self) -> usize {
@@ -274,9 +324,17 @@ impl Rollout {
                     got: action.len(),
                 });
             }
+            let scaled;
+            let env_act = match self.action_scale.as_deref() {
+                Some(scale) => {
+                    scaled = env_action(&action, scale);
+                    &scaled
+                }
+                None => &action,
+            };
             let outcome = slot
                 .env
-                .step(&action)
+                .step(env_act)
                 .map_err(|source| RolloutError::Step {
                     env: index,
                     lease_id: episode.lease.lease_id,
@@ -687,6 +745,58 @@ mod tests {
                 got: 2
             }
         ));
+    }
+
+    /// Spec 6.4 on a hand-computed case: env_d = clip(a_d / s_d, -1, 1).
+    #[test]
+    fn env_actions_are_agent_actions_over_the_scale_clipped() {
+        let agent = [0.2f32, -0.9, 0.9, -0.6];
+        let scale = [0.5f32, 2.0, 0.8, 0.5];
+        // 0.2 / 0.5 = 0.4; -0.9 / 2 = -0.45; 0.9 / 0.8 = 1.125 -> 1; -0.6 / 0.5 = -1.2 -> -1.
+        assert_eq!(env_action(&agent, &scale), [0.4, -0.45, 1.0, -1.0]);
+        assert_eq!(env_action(&agent, &[1.0; 4]), agent);
+    }
+
+    #[test]
+    fn a_scaled_rollout_steps_the_env_with_a_over_s_and_records_a() {
+        let mut r = Rollout::new(vec![Line::boxed()], 1, settings(false))
+            .with_action_scale(Some(vec![2.0]))
+            .unwrap();
+        r.begin(0, lease(1, LeaseKind::DemoState, vec![1.0], 4, 1))
+            .unwrap();
+        let mut policy = handle(3, 500);
+        let mut out = StepOutput::default();
+        for _ in 0..4 {
+            r.step(Some(&mut policy), &mut out).unwrap();
+        }
+        // Push acts +1 (agent units); the env moves by 1 / 2 per step: 1.5, 2, 2.5, 3.
+        assert!(out.transitions.iter().all(|t| t.action == [1.0]));
+        let next: Vec<f32> = out.transitions.iter().map(|t| t.next_obs[0]).collect();
+        assert_eq!(next, [1.5, 2.0, 2.5, 3.0]);
+        assert_eq!(out.finished[0].1.episode_return, 1.0);
+        // s < 1: a / s is clipped to the env's [-1, 1].
+        let mut r = Rollout::new(vec![Line::boxed()], 1, settings(false))
+            .with_action_scale(Some(vec![0.5]))
+            .unwrap();
+        r.begin(0, lease(2, LeaseKind::DemoState, vec![0.0], 1, 1))
+            .unwrap();
+        out.clear();
+        r.step(Some(&mut policy), &mut out).unwrap();
+        assert_eq!(
+            (out.transitions[0].action[0], out.transitions[0].next_obs[0]),
+            (1.0, 1.0)
+        );
+        // A scale that does not fit the env is refused.
+        for bad in [vec![1.0, 1.0], vec![0.0], vec![f32::NAN]] {
+            let err = Rollout::new(vec![Line::boxed()], 1, settings(false))
+                .with_action_scale(Some(bad))
+                .err()
+                .expect("refused");
+            assert!(
+                matches!(err, RolloutError::ActionScale { env: 0, .. }),
+                "{err}"
+            );
+        }
     }
 
     #[test]

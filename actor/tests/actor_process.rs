@@ -7,6 +7,9 @@
 //! * an eval actor evaluates each policy that passes a multiple of `sac.eval_freq`, with the number
 //!   of episodes of spec 5.7, aggregated by the curriculum server per policy version;
 //! * a dead learner or curriculum server makes the actor exit non-zero with a clear error;
+//! * with `train.data_action_scale` the envs get the agent action over the learner's scale,
+//!   clipped (spec 6.4), transitions keep the agent action, and a malformed or missing scale is
+//!   refused at start;
 //! * an unsupported suite is refused at start.
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -223,6 +226,15 @@ impl Drop for LearnerHandle {
 
 impl LearnerHandle {
     async fn start(cfg: &RunConfig, curriculum: &str) -> LearnerHandle {
+        Self::start_scaled(cfg, curriculum, Vec::new()).await
+    }
+
+    /// A learner double whose run description carries spec 6.4's `action_scale`.
+    async fn start_scaled(
+        cfg: &RunConfig,
+        curriculum: &str,
+        action_scale: Vec<f32>,
+    ) -> LearnerHandle {
         let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         listener.set_nonblocking(true).unwrap();
         let addr = listener.local_addr().unwrap().to_string();
@@ -238,6 +250,7 @@ impl LearnerHandle {
                 transport: "grpc".into(),
                 config_yaml: to_yaml(cfg),
                 run_seed: cfg.seed,
+                action_scale,
                 ..Default::default()
             },
             seen: seen.clone(),
@@ -500,6 +513,74 @@ async fn an_eval_actor_evaluates_each_eval_point_with_the_deterministic_policy()
         "{stderr}"
     );
     learner.shut_down();
+}
+
+/// Spec 6.4 through the actor binary: PointMaze's reported velocity is `MAX_SPEED` × the env
+/// action (0 on a blocked axis), so each transition shows the env action the actor sent.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scaled_run_steps_the_env_with_a_over_s_and_streams_agent_actions() {
+    use rfcl_actor::pointmaze::MAX_SPEED;
+    let dir = tempfile::tempdir().unwrap();
+    let (config, demos, mut cfg) = write_run(dir.path(), "");
+    cfg.train.data_action_scale = Some(1.25);
+    let server = Server::start(&config, &demos, &dir.path().join("run"));
+    // s_0 = 2 halves env actions; s_1 = 0.5 doubles them, clipped to [-1, 1].
+    let scale = [2.0f32, 0.5];
+    let mut learner = LearnerHandle::start_scaled(&cfg, &server.grpc, scale.to_vec()).await;
+    let mut actor = start_actor(&learner.addr, &["--envs", "2", "--id", "1"]);
+    assert!(wait_until(Duration::from_secs(20), || learner.transitions() >= 64).await);
+    let _ = actor.kill();
+    let _ = actor.wait();
+    let seen = learner.seen.lock().unwrap();
+    assert!(seen.bad_batches.is_empty(), "{:?}", seen.bad_batches);
+    let mut moved = [0usize; 2];
+    for t in &seen.transitions {
+        for d in 0..2 {
+            // Agent units, as the learner trains on them.
+            assert!((-1.0..=1.0).contains(&t.action[d]), "{t:?}");
+            let env = (t.action[d] / scale[d]).clamp(-1.0, 1.0);
+            let vel = t.next_obs[2 + d];
+            assert!(
+                vel == 0.0 || (vel - MAX_SPEED * env).abs() < 1e-5,
+                "dim {d}: agent {} -> velocity {vel}, expected {}",
+                t.action[d],
+                MAX_SPEED * env
+            );
+            moved[d] += usize::from(vel != 0.0);
+        }
+    }
+    let n = seen.transitions.len();
+    assert!(moved.iter().all(|&m| m > n / 2), "{moved:?} of {n}");
+    drop(seen);
+    learner.shut_down();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_malformed_or_missing_action_scale_is_refused_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, _, mut cfg) = write_run(dir.path(), "");
+    cfg.train.data_action_scale = Some(1.25);
+    for (scale, expected) in [
+        (
+            vec![1.0, 1.0, 1.0],
+            "malformed RunInfo.action_scale: expected 2 values",
+        ),
+        (
+            vec![1.0, 0.0],
+            "malformed RunInfo.action_scale: expected finite values > 0",
+        ),
+        (vec![], "sent no RunInfo.action_scale"),
+    ] {
+        let mut learner = LearnerHandle::start_scaled(&cfg, "127.0.0.1:1", scale).await;
+        let out = exit_within(
+            start_actor(&learner.addr, &["--envs", "1"]),
+            Duration::from_secs(20),
+        );
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success());
+        assert!(stderr.contains(expected), "{expected:?} in {stderr}");
+        learner.shut_down();
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

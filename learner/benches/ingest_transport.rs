@@ -173,6 +173,7 @@ fn bench_grpc(
         run_id: "0".into(),
         host_identity: String::new(),
         shm: None,
+        action_scale: None,
     };
     let service = LearnerService::new(
         info,

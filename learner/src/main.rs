@@ -228,6 +228,7 @@ async fn run(args: Args) -> Result<()> {
         run_id: rfcl_shm::new_run_id(),
         host_identity: rfcl_shm::host_identity(),
         shm: None,
+        action_scale: trainer.action_scale().map(<[f32]>::to_vec),
     };
     let counters = rfcl_learner::ingest::IngestCounters::new();
 

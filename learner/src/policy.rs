@@ -17,7 +17,8 @@
 //! log σ = min + ½(max − min)(tanh(h) + 1) with the run's `network.log_std_min/max`. A training
 //! actor samples a = tanh(μ + σ·ε), ε ~ N(0, I); an eval actor takes tanh(μ) (spec 5.7). Actions
 //! are in agent units, in (−1, 1); with `train.data_action_scale` the env action is a / s
-//! (spec 6.4), which [`PolicyDescription::action_scale`] records for exported policies.
+//! clipped to [−1, 1] (spec 6.4), with the s that [`PolicyDescription::action_scale`] records for
+//! exported policies and `RunInfo.action_scale` gives actors.
 //!
 //! The safetensors header metadata holds one entry, `format` = [`FORMAT`] (one entry keeps the
 //! bytes deterministic: equal weights give equal bytes); the dims are the shapes of
@@ -140,7 +141,8 @@ pub struct PolicyDescription {
     pub shape: PolicyShape,
     /// Hidden layers: `relu(x · kernel + bias)`.
     pub activation: String,
-    /// Per action dim, the s of spec 6.4: the env action is `a / s`. `None`: env action = a.
+    /// Per action dim, the s of spec 6.4: the env action is `clip(a / s, −1, 1)`. `None`: env
+    /// action = a.
     pub action_scale: Option<Vec<f32>>,
     /// The policy version and the env steps the learner had received when it was published.
     pub policy_version: u64,

@@ -1,7 +1,8 @@
 //! The `rfcl.v1.Learner` gRPC service: a thin shell over the training thread.
 //!
 //! * `GetRunInfo`: the run description actors start from (dims, env id, curriculum address,
-//!   resolved config as YAML, run seed, the learner's host), and the transport: the shared-memory
+//!   resolved config as YAML, run seed, the learner's host, spec 6.4's action scale when the run
+//!   sets `train.data_action_scale`), and the transport: the shared-memory
 //!   service names of this learner session with its host identity, and `transport` = "shm" for
 //!   an actor whose host identity equals the learner's (the actor still decides: `--transport`).
 //! * `PushTransitions`: client stream of validated [`TransitionBatch`](v1::TransitionBatch)es into
@@ -63,6 +64,9 @@ pub struct RunDescription {
     pub host_identity: String,
     /// The shared-memory services, when this learner serves them (`None`: gRPC only).
     pub shm: Option<rfcl_shm::ServiceNames>,
+    /// Spec 6.4's per-dimension action scale s (`train.data_action_scale`), `action_dim` values;
+    /// `None` = no scaling. Actors step their envs with a / s.
+    pub action_scale: Option<Vec<f32>>,
 }
 
 impl RunDescription {
@@ -151,6 +155,7 @@ impl Learner for LearnerService {
             learner_hostname: info.learner_hostname.clone(),
             run_id: info.run_id.clone(),
             learner_host_identity: info.host_identity.clone(),
+            action_scale: rfcl_proto::convert::action_scale_to_wire(info.action_scale.as_deref()),
         }))
     }
 

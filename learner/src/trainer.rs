@@ -381,6 +381,11 @@ impl Trainer {
     pub fn config_yaml(&self) -> &str {
         &self.config_yaml
     }
+    /// Spec 6.4's per-dimension s (`train.data_action_scale`); `None` = no scaling. Actors get it
+    /// in `RunInfo.action_scale` and step their envs with a / s.
+    pub fn action_scale(&self) -> Option<&[f32]> {
+        self.action_scale.as_deref()
+    }
     /// The Prometheus state this trainer keeps current (serve it with [`prom::serve`]; the
     /// transports count their own drops into it).
     pub fn metrics(&self) -> Arc<LearnerMetrics> {

@@ -29,7 +29,8 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
     let dir = tempfile::tempdir().unwrap();
     let run_dir = dir.path().join("run");
     let demos = write_demos(dir.path());
-    // data_action_scale: the export records the env-action scale of spec 6.4.
+    // data_action_scale: the export records the env-action scale of spec 6.4, and GetRunInfo
+    // gives actors the same.
     let config = write_config(dir.path(), W, STEPS, "");
     let mut text = std::fs::read_to_string(&config).unwrap();
     text = text.replace(
@@ -42,6 +43,15 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
     let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
     let mut learner = Learner::start(&args);
     let mut client = learner.client().await;
+    // Actors learn s from the run description and step their envs with a / s (spec 6.4).
+    let info = client
+        .get_run_info(rfcl_proto::v1::GetRunInfoRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    let sent = rfcl_proto::convert::action_scale(&info)
+        .unwrap()
+        .expect("RunInfo.action_scale with data_action_scale set");
 
     let summary = push(&mut client, batches(0..STEPS, 10, 0)).await.unwrap();
     assert_eq!(summary.accepted, STEPS);
@@ -73,6 +83,7 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
     assert_eq!(scale.len(), ACT);
     assert!(scale.iter().all(|&s| s.is_finite() && s > 0.0));
     assert!(scale.iter().any(|&s| s != 1.0), "{scale:?}");
+    assert_eq!(sent, scale, "the actors' scale is the exported one");
 
     // The documented PyTorch snippet acts like the Rust policy.
     let python = Path::new(env!("CARGO_MANIFEST_DIR")).join("../.venv/bin/python");
@@ -98,7 +109,12 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
     let from_torch: Vec<f32> = serde_json::from_slice(&out.stdout).unwrap();
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
     let agent = policy.act(&obs, true, &mut rng);
-    let from_rust: Vec<f32> = agent.iter().zip(&scale).map(|(a, s)| a / s).collect();
+    // rfcl_actor::rollout::env_action: clip(a / s, -1, 1).
+    let from_rust: Vec<f32> = agent
+        .iter()
+        .zip(&scale)
+        .map(|(a, s)| (a / s).clamp(-1.0, 1.0))
+        .collect();
     assert_eq!(from_torch.len(), ACT);
     for (t, r) in from_torch.iter().zip(&from_rust) {
         assert!(

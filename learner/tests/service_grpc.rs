@@ -40,6 +40,8 @@ async fn run_info_updates_on_schedule_and_whole_policy_versions() {
     assert_eq!(info.curriculum_addr, curriculum.grpc);
     assert_eq!(info.run_seed, 3);
     assert_eq!(info.policy_version, 1);
+    // No train.data_action_scale: no scale (spec 6.4; service_export.rs has one).
+    assert!(info.action_scale.is_empty());
     assert!(!info.learner_hostname.is_empty());
     let cfg = rfcl_core::config::resolve_file(&config, &[]).unwrap();
     assert_eq!(info.config_yaml, rfcl_core::config::to_yaml(&cfg));

@@ -231,6 +231,44 @@ impl TryFrom<v1::EpisodeReport> for EpisodeReport {
     }
 }
 
+/// Spec 6.4's per-dimension action scale s as `RunInfo.action_scale` carries it: empty for
+/// `None` (no scaling).
+pub fn action_scale_to_wire(scale: Option<&[f32]>) -> Vec<f32> {
+    scale.map(<[f32]>::to_vec).unwrap_or_default()
+}
+
+/// `RunInfo.action_scale` as the domain value: `None` when empty (no scaling), else s with one
+/// value per action dimension (`RunInfo.action_dim`), each finite and > 0 (spec 6.4).
+pub fn action_scale(info: &v1::RunInfo) -> Result<Option<Vec<f32>>, WireError> {
+    let scale = &info.action_scale;
+    if scale.is_empty() {
+        return Ok(None);
+    }
+    if scale.len() != info.action_dim as usize {
+        return Err(WireError::new(
+            "RunInfo",
+            "action_scale",
+            format!(
+                "expected {} values (action_dim) or none, got {}",
+                info.action_dim,
+                scale.len()
+            ),
+        ));
+    }
+    if let Some((d, s)) = scale
+        .iter()
+        .enumerate()
+        .find(|(_, s)| !(s.is_finite() && **s > 0.0))
+    {
+        return Err(WireError::new(
+            "RunInfo",
+            "action_scale",
+            format!("expected finite values > 0, got {s} for action dim {d}"),
+        ));
+    }
+    Ok(Some(scale.clone()))
+}
+
 /// The two halves of a `ReportAndAcquire` call.
 pub fn report_and_acquire(
     wire: v1::ReportAndAcquireRequest,
@@ -338,6 +376,32 @@ mod tests {
         })
         .unwrap();
         assert_eq!((r.lease_id, next.actor_id, next.env_index), (1, 3, 1));
+    }
+
+    #[test]
+    fn action_scale_round_trips_and_rejects_nonsense() {
+        let info = |scale: Vec<f32>| v1::RunInfo {
+            action_dim: 3,
+            action_scale: scale,
+            ..Default::default()
+        };
+        assert_eq!(
+            action_scale(&info(action_scale_to_wire(None))).unwrap(),
+            None
+        );
+        let s = [0.5f32, 1.0, 2.5];
+        let wire = info(action_scale_to_wire(Some(&s)));
+        assert_eq!(action_scale(&wire).unwrap(), Some(s.to_vec()));
+        let err = action_scale(&info(vec![1.0, 2.0])).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "malformed RunInfo.action_scale: expected 3 values (action_dim) or none, got 2"
+        );
+        for bad in [0.0, -1.0, f32::NAN, f32::INFINITY] {
+            let err = action_scale(&info(vec![1.0, bad, 1.0])).unwrap_err();
+            assert_eq!((err.message, err.field), ("RunInfo", "action_scale"));
+            assert!(err.problem.contains("action dim 1"), "{err}");
+        }
     }
 
     #[test]

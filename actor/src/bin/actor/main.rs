@@ -2,7 +2,7 @@
 //! streams transitions to the learner (ARCHITECTURE.md, "Processes").
 //!
 //! It asks the learner for the run (GetRunInfo: env, dims, curriculum address, resolved config,
-//! run seed), makes `--envs` envs, watches the learner's policies, and then either trains
+//! run seed, spec 6.4's action scale: with `train.data_action_scale` the envs get a / s), makes `--envs` envs, watches the learner's policies, and then either trains
 //! (Acquire → reset → step until the lease's time limit → transitions over PushTransitions, a
 //! Report per episode) or, with `--eval`, evaluates each policy that passes a multiple of
 //! `sac.eval_freq` with the deterministic policy on EVAL leases (spec 5.7). Lost connections are

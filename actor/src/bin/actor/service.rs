@@ -62,11 +62,20 @@ pub async fn run(
     let info = learner.run_info(opts.id).await?;
     let cfg = parse_config(&info.config_yaml)
         .with_context(|| format!("the run config sent by the {}", learner.peer))?;
-    if cfg.train.data_action_scale.is_some() {
-        bail!(
-            "the run sets train.data_action_scale (spec 6.4); this actor cannot apply the learner's \
-             per-dimension action scale yet"
-        );
+    // Spec 6.4: the learner computed s from the demos; the envs get a / s.
+    let action_scale = rfcl_proto::convert::action_scale(&info)
+        .with_context(|| format!("the run description sent by the {}", learner.peer))?;
+    match (cfg.train.data_action_scale, &action_scale) {
+        (Some(_), None) => bail!(
+            "the run sets train.data_action_scale (spec 6.4) but the {} sent no \
+             RunInfo.action_scale (a learner older than this actor?)",
+            learner.peer
+        ),
+        (None, Some(_)) => bail!(
+            "the {} sent RunInfo.action_scale but the run does not set train.data_action_scale",
+            learner.peer
+        ),
+        _ => {}
     }
     if cfg.env.env_id != info.env_id {
         bail!(
@@ -101,13 +110,15 @@ pub async fn run(
             num_seed_steps: run.cfg.sac.num_seed_steps,
             deterministic: opts.eval,
         },
-    );
+    )
+    .with_action_scale(action_scale)?;
     tracing::info!(
         actor = opts.id,
         eval = opts.eval,
         envs = opts.envs,
         env = %info.env_id,
         run = %info.run_name,
+        action_scale = ?rollout.action_scale(),
         "connected to the {} and the curriculum server at {}",
         learner.peer,
         info.curriculum_addr
