@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError
+from .base import AdapterError
+from .fields import FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs
 
 #: env id -> (task short name, horizon H of spec 8.3, task fields after qpos and qvel).
 TASKS: dict[str, tuple[str, int, tuple[tuple[str, int], ...]]] = {
@@ -46,8 +47,6 @@ TASKS: dict[str, tuple[str, int, tuple[tuple[str, int], ...]]] = {
 DENSE_IDS = {sparse.replace("Sparse", ""): sparse for sparse in TASKS}
 #: short task name ("door") -> sparse env id.
 ENV_IDS = {name: env_id for env_id, (name, _, _) in TASKS.items()}
-#: Keyword arguments :func:`make` accepts.
-MAKE_KWARGS = ("max_episode_steps", "control_mode", "env_kwargs", "seed")
 #: Constructor arguments of the Adroit envs that do not change the task.
 ENV_KWARGS = ("render_mode", "width", "height", "camera_id", "camera_name",
               "default_camera_config")
@@ -77,16 +76,11 @@ def make(env_id: str, **kwargs: Any) -> "AdroitAdapter":
     * ``env_kwargs``: a dict of env constructor arguments, from :data:`ENV_KWARGS`;
     * ``seed``: seeds the RNG that unseeded resets draw their seeds from.
     """
-    unknown = sorted(set(kwargs) - set(MAKE_KWARGS))
-    if unknown:
-        raise AdapterError(
-            f"adroit: unknown argument(s) {unknown} for {env_id}; expected some of "
-            f"{list(MAKE_KWARGS)}"
-        )
+    check_make_kwargs("adroit", env_id, kwargs)
     return AdroitAdapter(env_id, **kwargs)
 
 
-class AdroitAdapter(Adapter):
+class AdroitAdapter(FieldAdapter):
     """One Adroit hand task (see the module docs for the state and resets)."""
 
     suite = "adroit"
@@ -109,18 +103,8 @@ class AdroitAdapter(Adapter):
                 f"adroit: control_mode '{control_mode}' is not available for {self.env_id}; "
                 "Adroit has one controller (joint position targets): use null"
             )
-        env_kwargs = dict(env_kwargs or {})
-        bad = sorted(set(env_kwargs) - set(ENV_KWARGS))
-        if bad:
-            raise AdapterError(
-                f"adroit: env_kwargs {bad} are not supported for {self.env_id}; expected some of "
-                f"{list(ENV_KWARGS)}"
-            )
-        horizon = default_horizon if max_episode_steps is None else max_episode_steps
-        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
-            raise AdapterError(f"adroit: max_episode_steps must be a positive integer, got "
-                               f"{max_episode_steps!r}")
-        self.horizon = int(horizon)
+        env_kwargs = check_env_kwargs("adroit", self.env_id, env_kwargs, ENV_KWARGS)
+        self.horizon = check_horizon("adroit", max_episode_steps, default_horizon)
         gym.register_envs(gymnasium_robotics)
         self._wrapped = gym.make(self.env_id, **env_kwargs)
         self._env = self._wrapped.unwrapped
@@ -134,9 +118,6 @@ class AdroitAdapter(Adapter):
 
     # The contract -------------------------------------------------------------------------------
 
-    def state_layout(self) -> list[tuple[str, str, int]]:
-        return list(self._layout)
-
     def reset(self, seed: int | None, options: dict[str, Any]) -> np.ndarray:
         options = dict(options or {})
         initial = options.pop("initial_state_dict", None)
@@ -145,23 +126,13 @@ class AdroitAdapter(Adapter):
                 f"adroit: reset options {sorted(options)} are not understood by {self.env_id}; "
                 "expected none or 'initial_state_dict'"
             )
-        if seed is None:
-            seed = int(self._rng.integers(2**63))
-        elif isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise AdapterError(f"adroit: reset seed must be a non-negative integer, got {seed!r}")
-        obs, _ = self._env.reset(seed=int(seed))
+        obs, _ = self._env.reset(seed=self._reset_seed(seed))
         if initial is not None:
             return self.set_state(self.state_from_dict(initial, "reset options.initial_state_dict"))
         return np.asarray(obs, dtype=np.float32)
 
     def set_state(self, state: np.ndarray) -> np.ndarray:
-        parts = self._split(self._check_state(state))
-        for name, values in parts.items():
-            if not np.all(np.isfinite(values)):
-                raise AdapterError(
-                    f"adroit: state field '{name}' of {self.env_id} has a value that is not a "
-                    "finite number"
-                )
+        parts = self._state_fields(state)
         env = self._env
         if self.task == "door":
             env.model.body_pos[env.door_body_id] = parts["door_body_pos"]
@@ -190,9 +161,6 @@ class AdroitAdapter(Adapter):
             extra = [env.model.body_pos[env.obj_body_id],
                      env.model.site_pos[env.target_obj_site_id]]
         return np.concatenate([env.data.qpos, env.data.qvel, *extra]).astype(np.float32)
-
-    def close(self) -> None:
-        self._wrapped.close()
 
     # Beyond the contract -------------------------------------------------------------------------
 
@@ -251,12 +219,3 @@ class AdroitAdapter(Adapter):
         env.data.qpos[:] = np.asarray(qpos, dtype=np.float64)
         mujoco.mj_forward(env.model, env.data)
         return env.data.site_xpos[env.S_grasp_site_id].copy()
-
-    # Helpers -------------------------------------------------------------------------------------
-
-    def _split(self, s: np.ndarray) -> dict[str, np.ndarray]:
-        parts, offset = {}, 0
-        for name, _, n in self._layout:
-            parts[name] = s[offset:offset + n]
-            offset += n
-        return parts

@@ -42,7 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError
+from .base import AdapterError
+from .fields import FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs
 
 #: Spec 8.3: MetaWorld tasks run for H = 200 steps (train and eval).
 DEFAULT_HORIZON = 200
@@ -50,8 +51,6 @@ DEFAULT_HORIZON = 200
 #: options configure wrappers this adapter does not use (one-hot task ids, reward normalisation).
 ENV_KWARGS = ("reward_function_version", "render_mode", "camera_name", "camera_id", "width",
               "height")
-#: Keyword arguments :func:`make` accepts.
-MAKE_KWARGS = ("max_episode_steps", "control_mode", "env_kwargs", "seed")
 #: MetaWorld's one controller: end-effector mocap deltas plus a gripper effort.
 CONTROL_MODES = (None, "default")
 #: Observation layout: hand xyz, gripper opening, 14 object values = one 18-value frame.
@@ -77,16 +76,11 @@ def make(env_id: str, **kwargs: Any) -> "MetaWorldAdapter":
     * ``env_kwargs``: a dict of Sawyer env arguments, one of :data:`ENV_KWARGS`;
     * ``seed``: seeds the RNG that unseeded resets draw their seeds from.
     """
-    unknown = sorted(set(kwargs) - set(MAKE_KWARGS))
-    if unknown:
-        raise AdapterError(
-            f"metaworld: unknown argument(s) {unknown} for {env_id}; expected some of "
-            f"{list(MAKE_KWARGS)}"
-        )
+    check_make_kwargs("metaworld", env_id, kwargs)
     return MetaWorldAdapter(env_id, **kwargs)
 
 
-class MetaWorldAdapter(Adapter):
+class MetaWorldAdapter(FieldAdapter):
     """One goal-observable MetaWorld task (see the module docs for resets and the state)."""
 
     suite = "metaworld"
@@ -112,16 +106,9 @@ class MetaWorldAdapter(Adapter):
                 f"metaworld: control_mode '{control_mode}' is not available for {env_id}; "
                 "MetaWorld has one controller (end-effector deltas + gripper): use null"
             )
-        env_kwargs = dict(env_kwargs or {})
-        bad = sorted(set(env_kwargs) - set(ENV_KWARGS))
-        if bad:
-            raise AdapterError(
-                f"metaworld: env_kwargs {bad} are not supported for {env_id}; expected some of "
-                f"{list(ENV_KWARGS)}"
-            )
+        env_kwargs = check_env_kwargs("metaworld", env_id, env_kwargs, ENV_KWARGS)
         self.env_id = env_id
-        self.horizon = _positive_int(DEFAULT_HORIZON if max_episode_steps is None
-                                     else max_episode_steps, "max_episode_steps")
+        self.horizon = check_horizon("metaworld", max_episode_steps, DEFAULT_HORIZON)
         # MT1's seed only fixes its 50 goals, which resets replace (module docs); a constant keeps
         # construction deterministic and within the 32-bit seeds MT1 takes.
         self._wrapped = gym.make("Meta-World/MT1", env_name=env_id, seed=0, **env_kwargs)
@@ -149,22 +136,14 @@ class MetaWorldAdapter(Adapter):
 
     # The contract -------------------------------------------------------------------------------
 
-    def state_layout(self) -> list[tuple[str, str, int]]:
-        return list(self._layout)
-
     def reset(self, seed: int | None, options: dict[str, Any]) -> np.ndarray:
         if options:
             raise AdapterError(
                 f"metaworld: reset options {sorted(options)} are not understood by {self.env_id}; "
                 "MetaWorld resets take a seed only (options must be empty)"
             )
-        if seed is None:
-            seed = int(self._rng.integers(2**63))
-        elif isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise AdapterError(
-                f"metaworld: reset seed must be a non-negative integer, got {seed!r}")
         env = self._env
-        env.seed(int(seed))
+        env.seed(self._reset_seed(seed))
         env._freeze_rand_vec = False
         env.seeded_rand_vec = True
         env.reset()
@@ -176,14 +155,7 @@ class MetaWorldAdapter(Adapter):
     def set_state(self, state: np.ndarray) -> np.ndarray:
         import mujoco
 
-        s = self._check_state(state)
-        parts = self._split(s)
-        for name, values in parts.items():
-            if not np.all(np.isfinite(values)):
-                raise AdapterError(
-                    f"metaworld: state field '{name}' of {self.env_id} has a value that is not a "
-                    "finite number"
-                )
+        parts = self._state_fields(state)
         env = self._env
         rand_vec = parts["rand_vec"].astype(np.float64)
         if not np.array_equal(np.asarray(env._last_rand_vec, dtype=np.float64), rand_vec):
@@ -223,22 +195,12 @@ class MetaWorldAdapter(Adapter):
             self._obs[FRAME_LEN:2 * FRAME_LEN],
         ]).astype(np.float32)
 
-    def close(self) -> None:
-        self._wrapped.close()
-
     # Helpers -------------------------------------------------------------------------------------
 
     def _step_env(self, action: np.ndarray) -> tuple[np.ndarray, bool]:
         obs, _, _, _, info = self._env.step(action)
         self._obs = np.asarray(obs, dtype=np.float32)
         return self._obs.copy(), bool(info["success"])
-
-    def _split(self, s: np.ndarray) -> dict[str, np.ndarray]:
-        parts, offset = {}, 0
-        for name, _, n in self._layout:
-            parts[name] = s[offset:offset + n]
-            offset += n
-        return parts
 
 
 def env_task(wrapped: Any) -> Any:
@@ -250,9 +212,3 @@ def env_task(wrapped: Any) -> Any:
             raise AdapterError("metaworld: Meta-World/MT1 returned an env without its task list")
         env = env.env
     return env.tasks[0]
-
-
-def _positive_int(value: Any, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise AdapterError(f"metaworld: {what} must be a positive integer, got {value!r}")
-    return int(value)
