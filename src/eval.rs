@@ -33,7 +33,7 @@ pub struct EvalReport {
 
 impl EvalReport {
     /// For PointMaze: the maze as text with each start cell's success rate as a digit (`9` = 90 %
-    /// or more, `0` = under 10 %, `-` = not visited), the goal `G` and walls `#`.
+    /// or more, `0` = under 10 %, `-` = not visited), the goal `G`, walls `#` and hazard walls `X`.
     pub fn pointmaze_map(&self) -> String {
         let maze = rfcl_core::maze::maze();
         let mut per_cell = std::collections::BTreeMap::<rfcl_core::maze::Cell, (u32, u32)>::new();

@@ -167,23 +167,35 @@ fn success_is_distance_at_most_045_without_collision() {
 }
 
 #[test]
-fn collision_is_within_065_of_a_wall_centre_on_both_axes_and_sticks() {
-    // Cell (1, 2): the wall (2, 2) is centred at y = 2 below it, the wall (0, 2) at y = 0 above it.
-    assert!(!pointmaze::collides([2.0, 2.0 - COLLISION_MARGIN - 0.01]));
-    assert!(pointmaze::collides([2.0, 2.0 - COLLISION_MARGIN + 0.01]));
-    assert!(pointmaze::collides([2.0, COLLISION_MARGIN - 0.01]));
-    // Cell (3, 7): the wall (3, 8) is centred at x = 8; within the margin in y alone is no collision.
-    assert!(!pointmaze::collides([8.0 - COLLISION_MARGIN - 0.05, 3.3]));
-    assert!(pointmaze::collides([8.0 - COLLISION_MARGIN + 0.01, 3.3]));
-    assert!(pointmaze::collides([3.0, 3.0]), "inside wall (3, 3)");
+fn collision_is_within_065_of_a_hazard_centre_on_both_axes_and_sticks() {
+    // Cell (3, 10): the hazard (2, 10) is centred at y = 2 above it.
+    assert!(!pointmaze::collides([10.0, 2.0 + COLLISION_MARGIN + 0.01]));
+    assert!(pointmaze::collides([10.0, 2.0 + COLLISION_MARGIN - 0.01]));
+    // The goal cell (1, 1): the hazard (1, 0) is centred at x = 0.
+    assert!(!pointmaze::collides([COLLISION_MARGIN + 0.01, 1.0]));
+    assert!(pointmaze::collides([COLLISION_MARGIN - 0.01, 1.0]));
+    // Cell (10, 6): the hazard (10, 5) is centred at x = 5; within the margin in x alone (the point
+    // further up, in the wall (9, 6)'s rows) is no collision.
+    assert!(!pointmaze::collides([5.0 + COLLISION_MARGIN + 0.05, 10.0]));
+    assert!(pointmaze::collides([5.0 + COLLISION_MARGIN - 0.01, 10.0]));
     assert!(pointmaze::collides([-3.0, 1.0]), "outside the grid");
+    // Plain walls block but do not count: cell (1, 2) lies between the walls (0, 2) and (2, 2).
+    assert!(!pointmaze::collides([2.0, 2.0 - COLLISION_MARGIN + 0.01]));
+    assert!(!pointmaze::collides([2.0, COLLISION_MARGIN - 0.01]));
+    assert!(!pointmaze::collides([8.0 - COLLISION_MARGIN + 0.01, 3.3]));
 
-    let mut env = env_at(&state_at(2.0, 1.3, false));
-    let out = env.step(&[0.0, 0.5]).unwrap();
-    assert!((out.obs[1] - 1.4).abs() < 1e-5);
+    let mut env = env_at(&state_at(0.8, 1.0, false));
+    let out = env.step(&[-0.5, 0.0]).unwrap();
+    assert!((out.obs[0] - 0.7).abs() < 1e-5);
+    assert_eq!(
+        out.obs[6], 0.0,
+        "x = 0.7 is 0.7 from the hazard centre at x = 0"
+    );
+    let out = env.step(&[-0.5, 0.0]).unwrap();
+    assert!((out.obs[0] - 0.6).abs() < 1e-5);
     assert_eq!(
         out.obs[6], 1.0,
-        "y = 1.4 is 0.6 from the wall centre at y = 2"
+        "x = 0.6 is 0.6 from the hazard centre at x = 0"
     );
     // Back to the goal: the flag stays and there is no success.
     for _ in 0..10 {
@@ -353,16 +365,16 @@ fn bad_states_and_options_are_named() {
         "qpos",
         "outside"
     );
-    let err = reject(&state_at(2.0, 1.4, false));
+    let err = reject(&state_at(0.6, 1.0, false));
     assert_eq!(
         invalid_field(&err),
         "collided",
         "within the margin but not collided: {err}"
     );
-    assert!(err.to_string().contains("wall cell (2, 2)"), "{err}");
+    assert!(err.to_string().contains("hazard wall cell (1, 0)"), "{err}");
     assert_eq!(env.get_state(), before, "a refused state changes nothing");
     assert!(env
-        .reset_to_state(Some(1), NONE, &state_at(2.0, 1.4, true))
+        .reset_to_state(Some(1), NONE, &state_at(0.6, 1.0, true))
         .is_ok());
 
     let err = env

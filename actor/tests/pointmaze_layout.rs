@@ -22,8 +22,35 @@ fn there_are_34_start_cells_in_row_major_order() {
     assert!(cells.windows(2).all(|w| w[0] < w[1]), "row-major order");
     assert!(!cells.contains(&maze().goal_cell()));
     assert!(cells.iter().all(|&c| !maze().is_wall(c)));
-    let open = MAP.chars().filter(|&ch| ch != '#' && ch != '\n').count();
+    let open = MAP.chars().filter(|&ch| matches!(ch, '.' | 'G')).count();
     assert_eq!(open, 35, "34 start cells and the goal");
+}
+
+#[test]
+fn hazards_are_the_wall_behind_the_goal_and_the_dead_end_caps() {
+    let hazards: Vec<Cell> = (0..12)
+        .flat_map(|r| (0..12).map(move |c| (r, c)))
+        .filter(|&cell| maze().is_hazard(cell))
+        .collect();
+    assert_eq!(hazards, [(1, 0), (2, 10), (10, 3), (10, 5)]);
+    assert!(hazards.iter().all(|&cell| maze().is_wall(cell)));
+    assert!(
+        maze().is_hazard((12, 3)),
+        "outside the grid counts as hazard"
+    );
+    // Each hazard closes the end of a corridor: one open neighbour.
+    for (r, c) in hazards {
+        let open = [
+            (r.wrapping_sub(1), c),
+            (r + 1, c),
+            (r, c.wrapping_sub(1)),
+            (r, c + 1),
+        ]
+        .into_iter()
+        .filter(|&n| !maze().is_wall(n))
+        .count();
+        assert_eq!(open, 1, "hazard {:?}", (r, c));
+    }
 }
 
 #[test]

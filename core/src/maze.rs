@@ -14,15 +14,23 @@ pub type Cell = (usize, usize);
 /// Rows and columns of the maze.
 pub const SIZE: usize = 12;
 
-/// The layout: `#` wall (the spec's "2" cells), `.` open start cell, `G` the goal cell.
+/// The layout: `#` wall, `X` hazard wall, `.` open start cell, `G` the goal cell.
 ///
 /// A serpentine corridor leads from the goal (top left) down to the far end of the bottom corridor,
 /// with three dead ends. Walls between corridors are two cells thick, so cells that look close to the
 /// goal (row 4) are 10 or more cells away along the corridors.
+///
+/// Every wall blocks the point. Only hazard walls (`X`, the spec's "2" cells) count as a collision
+/// (spec 7.5: within 0.65 of a "2" cell, after which the episode earns nothing): the wall behind the
+/// goal and the caps of the three dead ends, so overshooting the end of a corridor is fatal.
+/// Measured (2026-11-23) with every wall a hazard: a stochastic policy that meets an unvisited
+/// corridor cell drives into a wall within a step or two, so stage 2 never found the first success
+/// from the cells next to the solved ones (10 cells at 0 returns over 830 episodes each) and eval
+/// success stayed at 70 %.
 pub const MAP: &str = "\
 ############
-#G......####
-#######.####
+XG......####
+#######.##X#
 #######.##.#
 ##.........#
 ##.#########
@@ -30,13 +38,14 @@ pub const MAP: &str = "\
 ##.......###
 ###.####.###
 ###.####.###
-######...###
+###X#X...###
 ############";
 
 /// The parsed layout with goal distances. Use [`maze`] for the one fixed instance.
 #[derive(Debug)]
 pub struct Maze {
     walls: [[bool; SIZE]; SIZE],
+    hazards: [[bool; SIZE]; SIZE],
     goal: Cell,
     start_cells: Vec<Cell>,
     distance: [[Option<usize>; SIZE]; SIZE],
@@ -55,6 +64,7 @@ impl Maze {
         let rows: Vec<&[u8]> = map.lines().map(str::as_bytes).collect();
         assert_eq!(rows.len(), SIZE, "the map has {SIZE} rows");
         let mut walls = [[false; SIZE]; SIZE];
+        let mut hazards = [[false; SIZE]; SIZE];
         let mut goal = None;
         let mut start_cells = Vec::new();
         for (r, row) in rows.iter().enumerate() {
@@ -62,6 +72,7 @@ impl Maze {
             for (c, &ch) in row.iter().enumerate() {
                 match ch {
                     b'#' => walls[r][c] = true,
+                    b'X' => (walls[r][c], hazards[r][c]) = (true, true),
                     b'.' => start_cells.push((r, c)),
                     b'G' => {
                         assert!(goal.replace((r, c)).is_none(), "the map has one goal");
@@ -73,6 +84,7 @@ impl Maze {
         let goal = goal.expect("the map has a goal");
         let mut maze = Self {
             walls,
+            hazards,
             goal,
             start_cells,
             distance: [[None; SIZE]; SIZE],
@@ -113,6 +125,17 @@ impl Maze {
     /// Whether `cell` is a wall. Cells outside the grid count as walls.
     pub fn is_wall(&self, (r, c): Cell) -> bool {
         r >= SIZE || c >= SIZE || self.walls[r][c]
+    }
+
+    /// Whether `cell` is a hazard wall (the spec's "2" cells): touching it is a collision. Cells
+    /// outside the grid count as hazards, so leaving the grid is a collision too.
+    pub fn is_hazard(&self, (r, c): Cell) -> bool {
+        r >= SIZE || c >= SIZE || self.hazards[r][c]
+    }
+
+    /// The hazard walls among `cell` and its 8 neighbours.
+    pub fn hazards_around(&self, cell: Cell) -> impl Iterator<Item = Cell> + '_ {
+        self.walls_around(cell).filter(|&wall| self.is_hazard(wall))
     }
 
     /// The goal cell; the goal position is its centre.

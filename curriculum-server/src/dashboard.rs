@@ -37,7 +37,8 @@ pub struct DashboardView {
 /// The PointMaze heatmap (the paper's figure): success per start cell over the run.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct MazeView {
-    /// The layout, one string per row (`#` wall, `G` goal, `.` open), as in `rfcl_core::maze::MAP`.
+    /// The layout, one string per row (`#` wall, `X` hazard wall, `G` goal, `.` open), as in
+    /// `rfcl_core::maze::MAP`.
     pub map: Vec<String>,
     /// Evals spread over the run, oldest first; the last is the latest complete eval.
     pub snapshots: Vec<MazeSnapshot>,
@@ -199,8 +200,8 @@ fn success_color(rate: f64) -> RGBColor {
 }
 
 /// The PointMaze heatmap: one small maze per snapshot, each start cell shaded from white (never
-/// solved) to green (always solved), walls dark, the goal red, the demos' paths blue (the paper's
-/// figure). Cells without eval episodes stay light grey.
+/// solved) to green (always solved), walls dark, hazard walls dark red, the goal red, the demos'
+/// paths blue (the paper's figure). Cells without eval episodes stay light grey.
 pub fn maze_heatmap_svg(maze: &MazeView) -> String {
     let rows = maze.map.len().max(1) as u32;
     let cols = maze.map.iter().map(|r| r.len()).max().unwrap_or(1).max(1) as u32;
@@ -244,6 +245,7 @@ pub fn maze_heatmap_svg(maze: &MazeView) -> String {
                 for (c, ch) in line.chars().enumerate() {
                     let color = match ch {
                         '#' => RGBColor(60, 60, 60).filled(),
+                        'X' => RGBColor(150, 30, 30).filled(),
                         _ => match snap
                             .cells
                             .iter()

@@ -11,9 +11,10 @@
 //!   radius [`POINT_RADIUS`]; a blocked axis stops at the face and its velocity drops to 0). One
 //!   step moves at most `MAX_SPEED × SUBSTEPS × DT` = 0.2 cells per axis. `vx, vy` report the
 //!   velocity of the last substep; the dynamics never read them.
-//! * **Collision**: after each substep, being within [`COLLISION_MARGIN`] of a wall cell's centre in
-//!   both x and y. The collided-once flag then stays set until the next reset. Touching a wall
-//!   implies a collision since `0.5 + POINT_RADIUS < COLLISION_MARGIN`.
+//! * **Collision**: after each substep, being within [`COLLISION_MARGIN`] of a hazard wall cell's
+//!   centre (`X` in [`rfcl_core::maze::MAP`], the spec's "2" cells) in both x and y. The
+//!   collided-once flag then stays set until the next reset. Touching a hazard implies a collision
+//!   since `0.5 + POINT_RADIUS < COLLISION_MARGIN`; other walls only block.
 //! * **Success**: distance to the goal ≤ [`GOAL_RADIUS`] and no collision so far, judged on the
 //!   state after the action. Episodes never end on success (spec 5.6); the horizon is [`HORIZON`].
 //! * **Reset with a seed**: start cell [`Maze::seed_cell`] (seed mod 34), plus a uniform jitter of
@@ -55,7 +56,7 @@ pub const DT: f32 = 0.01;
 pub const MAX_SPEED: f32 = 2.0;
 /// Radius of the point; walls block it at `0.5 + POINT_RADIUS` from their centre on both axes.
 pub const POINT_RADIUS: f32 = 0.1;
-/// A collision is being within this distance of a wall cell's centre in both x and y (spec 7.5).
+/// A collision is being within this distance of a hazard wall cell's centre in both x and y (spec 7.5).
 pub const COLLISION_MARGIN: f32 = 0.65;
 /// Success is being within this distance of the goal, without a collision so far (spec 7.5).
 pub const GOAL_RADIUS: f32 = 0.45;
@@ -93,15 +94,15 @@ pub fn goal_position() -> [f32; 2] {
     cell_centre(maze().goal_cell())
 }
 
-/// Whether position `[x, y]` collides: within [`COLLISION_MARGIN`] of a wall cell's centre in both
-/// x and y. Positions outside the grid collide.
+/// Whether position `[x, y]` collides: within [`COLLISION_MARGIN`] of a hazard wall cell's centre
+/// in both x and y. Positions outside the grid collide.
 pub fn collides(pos: [f32; 2]) -> bool {
     cell_at(pos).is_none_or(|cell| colliding_wall(cell, pos).is_some())
 }
 
-/// The wall cell that position `pos`, inside `cell`, collides with, if any.
+/// The hazard wall cell that position `pos`, inside `cell`, collides with, if any.
 fn colliding_wall(cell: Cell, pos: [f32; 2]) -> Option<Cell> {
-    maze().walls_around(cell).find(|&wall| {
+    maze().hazards_around(cell).find(|&wall| {
         let centre = cell_centre(wall);
         (0..2).all(|a| {
             centre[a] - COLLISION_MARGIN <= pos[a] && pos[a] <= centre[a] + COLLISION_MARGIN
@@ -258,7 +259,7 @@ impl PointMaze {
         }
         if let (false, Some(wall)) = (collided, colliding_wall(cell, pos)) {
             let reason = format!(
-                "0 at {pos:?}, within {COLLISION_MARGIN} of wall cell {wall:?}: a collision"
+                "0 at {pos:?}, within {COLLISION_MARGIN} of hazard wall cell {wall:?}: a collision"
             );
             return Err(invalid("collided", reason));
         }
