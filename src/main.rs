@@ -190,7 +190,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             );
             if report.env_id == rfcl_actor::pointmaze::ENV_ID {
                 println!(
-                    "success per start cell (tenths: 9 = 90% or more; G goal, # wall):\n{}",
+                    "success per start cell (tenths: 9 = 90% or more; G goal, # wall, X hazard wall):\n{}",
                     report.pointmaze_map()
                 );
             }
