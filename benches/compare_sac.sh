@@ -108,10 +108,15 @@ for r in range(1, rounds + 1):
     rust, jax = json.loads(read(f"rust_{r}.json")), json.loads(read(f"jax_{r}.json"))
     runs.append(dict(round=r, rust_load=float(read(f"rust_{r}.load")), jax_load=float(read(f"jax_{r}.load")),
                      rust=rust, jax=jax))
+    # The Rust bench measures the machine's fp32 matmul peak (a 1024^3 GEMM in libtorch).
+    peak = rust.get("matmul_peak_gflop_per_s")
     for a, b in zip(rust["results"], jax["results"]):
         ratios.append(dict(round=r, schedule=a["schedule"], rust_updates_per_s=a["updates_per_s"],
                            jax_updates_per_s=b["updates_per_s"], ratio=a["updates_per_s"] / b["updates_per_s"],
-                           rust_gflop_per_s=a["gflop_per_s"], jax_gflop_per_s=b["gflop_per_s"]))
+                           rust_gflop_per_s=a["gflop_per_s"], jax_gflop_per_s=b["gflop_per_s"],
+                           matmul_peak_gflop_per_s=peak,
+                           jax_fraction_of_peak=b["gflop_per_s"] / peak if peak else None,
+                           rust_fraction_of_peak=a["gflop_per_s"] / peak if peak else None))
 print(json.dumps(dict(
     date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
     machine=f"{cpu}, {os.cpu_count()} cores, {platform.node()}",

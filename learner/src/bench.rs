@@ -12,6 +12,7 @@ use rand_chacha::ChaCha8Rng;
 use rfcl_core::config::{MatmulPrecision, NetworkConfig, SacConfig};
 use serde::Serialize;
 use std::time::{Duration, Instant};
+use tch::Tensor;
 
 /// What to measure.
 #[derive(Debug, Clone, Serialize)]
@@ -79,6 +80,8 @@ pub struct ScheduleResult {
     pub flop_per_actor_update: f64,
     /// Achieved matmul GFLOP/s.
     pub gflop_per_s: f64,
+    /// `gflop_per_s` over the report's `matmul_peak_gflop_per_s`.
+    pub fraction_of_peak: f64,
     /// Seconds per iteration spent sampling and converting the batch (not in `seconds`).
     pub batch_seconds_per_iteration: f64,
     /// `updates_per_s` of every window, in order.
@@ -89,12 +92,16 @@ pub struct ScheduleResult {
 pub struct BenchReport {
     pub config: BenchConfig,
     pub device: String,
+    /// The machine's measured fp32 matmul throughput at the same thread count (see
+    /// [`matmul_peak_gflop_per_s`]), the yardstick for each result's `gflop_per_s`.
+    pub matmul_peak_gflop_per_s: f64,
     pub results: Vec<ScheduleResult>,
 }
 
 /// Runs every schedule of `cfg` and returns the measurements (print them with `serde_json`).
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
     let runtime = crate::runtime::configure_cpu(cfg.threads);
+    let peak = matmul_peak_gflop_per_s(PEAK_GEMM_SIZE, cfg.window_seconds.min(2.0));
     let net = NetworkConfig {
         actor_features: cfg.hidden.clone(),
         critic_features: cfg.hidden.clone(),
@@ -151,6 +158,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
                 flop_per_critic_update: flops.critic_update,
                 flop_per_actor_update: flops.actor_update,
                 gflop_per_s: critic_updates * flop_per_update / seconds / 1e9,
+                fraction_of_peak: critic_updates * flop_per_update / seconds / 1e9 / peak,
                 batch_seconds_per_iteration: batch_time.as_secs_f64() / iterations as f64,
                 window_updates_per_s: Vec::new(),
             };
@@ -172,8 +180,31 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             "cpu, {} threads, allocator tuned: {}",
             runtime.threads, runtime.allocator_tuned
         ),
+        matmul_peak_gflop_per_s: peak,
         results,
     })
+}
+
+/// The square GEMM that measures the matmul peak: large enough that libtorch's BLAS reaches its
+/// best rate, small enough to run a few times a second on 2 cores.
+const PEAK_GEMM_SIZE: i64 = 1024;
+
+/// fp32 GEMM throughput of libtorch on this machine with its current thread settings: the best of
+/// repeated `[n, n] × [n, n]` products (2n³ FLOP each) for about `seconds`.
+pub fn matmul_peak_gflop_per_s(n: i64, seconds: f64) -> f64 {
+    let options = (tch::Kind::Float, tch::Device::Cpu);
+    let (a, b) = (
+        Tensor::randn([n, n], options),
+        Tensor::randn([n, n], options),
+    );
+    let out = a.mm(&b); // warm-up (and the output buffer)
+    let (start, mut best) = (Instant::now(), f64::INFINITY);
+    while start.elapsed().as_secs_f64() < seconds || best.is_infinite() {
+        let t = Instant::now();
+        let _ = a.mm_out(&out, &b);
+        best = best.min(t.elapsed().as_secs_f64());
+    }
+    2.0 * (n as f64).powi(3) / best / 1e9
 }
 
 /// Uniform random transitions in [-1, 1] (the maths do not care about the values).
@@ -307,5 +338,17 @@ mod tests {
         }
         let json = serde_json::to_value(&report).unwrap();
         assert!(json["results"][0]["flop_per_update"].as_f64().unwrap() > 0.0);
+        assert!(report.matmul_peak_gflop_per_s > 0.0);
+        for r in &report.results {
+            let ratio = r.gflop_per_s / report.matmul_peak_gflop_per_s;
+            assert!((r.fraction_of_peak - ratio).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn matmul_peak_is_a_plausible_rate() {
+        // 2·64³ FLOP per product: any CPU does between 0.1 and 10,000 GFLOP/s.
+        let peak = matmul_peak_gflop_per_s(64, 0.05);
+        assert!(peak > 0.1 && peak < 10_000.0, "{peak}");
     }
 }
