@@ -145,6 +145,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             let seconds = busy.as_secs_f64();
             let critic_updates = (iterations * u64::from(g)) as f64;
             let actor_updates = (iterations * u64::from(g / f)) as f64;
+            let gflop_per_s = critic_updates * flop_per_update / seconds / 1e9;
             let window = ScheduleResult {
                 schedule: format!("G{g}/F{f}"),
                 grad_updates_per_step: g,
@@ -157,8 +158,8 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
                 flop_per_update,
                 flop_per_critic_update: flops.critic_update,
                 flop_per_actor_update: flops.actor_update,
-                gflop_per_s: critic_updates * flop_per_update / seconds / 1e9,
-                fraction_of_peak: critic_updates * flop_per_update / seconds / 1e9 / peak,
+                gflop_per_s,
+                fraction_of_peak: gflop_per_s / peak,
                 batch_seconds_per_iteration: batch_time.as_secs_f64() / iterations as f64,
                 window_updates_per_s: Vec::new(),
             };
