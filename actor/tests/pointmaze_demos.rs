@@ -110,6 +110,24 @@ fn generated_demos_are_deterministic_and_start_from_distinct_cells() {
 }
 
 #[test]
+fn three_generated_demos_pass_every_start_cell() {
+    // The maze's corridors form a tree with three dead ends, (10, 6), (3, 10) and (9, 3): the
+    // greedy cover starts there, whatever the seed, and their paths pass all 34 start cells.
+    for seed in [0, 1, 7] {
+        let demos = generate_demos(3, seed);
+        let starts: Vec<_> = demos.iter().map(|d| d.start_cell).collect();
+        assert_eq!(starts, [(10, 6), (3, 10), (9, 3)], "seed {seed}");
+        let passed: std::collections::BTreeSet<_> = demos
+            .iter()
+            .flat_map(|d| pointmaze::maze().path_to_goal(d.start_cell).unwrap())
+            .collect();
+        for cell in pointmaze::start_cells() {
+            assert!(passed.contains(&cell), "no demo passes {cell:?}");
+        }
+    }
+}
+
+#[test]
 fn demos_beyond_34_revisit_cells_with_new_seeds() {
     let demos = generate_demos(40, 1);
     for k in 34..40 {

@@ -7,6 +7,7 @@
 //! collisions. At the goal it keeps stepping until it has spent [`SUCCESS_STEPS`] steps in success,
 //! so every demo ends in a success state, where the reverse curriculum starts (spec 2.1).
 
+use std::collections::HashSet;
 use std::path::PathBuf;
 
 use rand::seq::SliceRandom;
@@ -167,23 +168,56 @@ pub fn plan_demo(reset_seed: u64) -> Result<PointMazeDemo, PlanError> {
     Ok(demo)
 }
 
-/// `n` demos from distinct start cells while `n` ≤ 34, in an order shuffled by `seed`.
+/// `n` demos from distinct start cells while `n` ≤ 34, chosen to cover the maze.
 ///
-/// Demo `k` resets with seed `cells[k % 34] + 34 · (k / 34)`, where `cells` is the shuffled list of
-/// start-cell indices: a demo's seed maps to its start cell (spec 7.5), and demos beyond the 34th
-/// revisit cells with other jitters.
+/// The start cells are taken greedily: each next one is the cell whose path to the goal passes the
+/// most cells that no earlier demo's path passes, ties broken by an order shuffled by `seed`. Three
+/// demos (one per dead end) pass every start cell; from then on the order is the shuffled one. Demo
+/// `k` resets with seed `order[k % 34] + 34 · (k / 34)`: a demo's seed maps to its start cell
+/// (spec 7.5), and demos beyond the 34th revisit cells with other jitters.
 ///
 /// # Panics
 /// If a demo cannot be planned. The maze is fixed and the tests plan every start cell, so this does
 /// not happen.
 pub fn generate_demos(n: usize, seed: u64) -> Vec<PointMazeDemo> {
-    let cells = maze().start_cells().len() as u64;
-    let mut order: Vec<u64> = (0..cells).collect();
-    order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
+    let order = covering_order(seed);
+    let cells = order.len() as u64;
     (0..n as u64)
         .map(|k| {
             let reset_seed = order[(k % cells) as usize] + cells * (k / cells);
             plan_demo(reset_seed).expect("every start cell of the fixed maze has a demo")
         })
         .collect()
+}
+
+/// Every start-cell index once, in the greedy path-covering order of [`generate_demos`].
+fn covering_order(seed: u64) -> Vec<u64> {
+    let maze = maze();
+    let mut remaining: Vec<u64> = (0..maze.start_cells().len() as u64).collect();
+    remaining.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
+    let paths: Vec<Vec<Cell>> = (0..remaining.len() as u64)
+        .map(|i| {
+            maze.path_to_goal(seed_cell(i))
+                .expect("every start cell reaches the goal")
+        })
+        .collect();
+    let mut covered = HashSet::new();
+    let mut order = Vec::with_capacity(remaining.len());
+    while !remaining.is_empty() {
+        let new_cells = |&i: &u64| {
+            paths[i as usize]
+                .iter()
+                .filter(|c| !covered.contains(*c))
+                .count()
+        };
+        // The first of the best in shuffled order: `max_by_key` would keep the last.
+        let best = (0..remaining.len())
+            .rev()
+            .max_by_key(|&j| new_cells(&remaining[j]))
+            .expect("remaining is not empty");
+        let index = remaining.remove(best);
+        covered.extend(paths[index as usize].iter().copied());
+        order.push(index);
+    }
+    order
 }
