@@ -112,8 +112,8 @@ enum DemosCommand {
         /// Output .h5 file (a .json sidecar is written beside it).
         #[arg(long)]
         out: PathBuf,
-        /// Seed of the generator (PointMaze: it picks which start cells the demos start from;
-        /// MetaWorld: the first episode seed).
+        /// Seed of the generator (PointMaze: it orders the start cells after the three dead ends
+        /// that the maze-covering demos always start from; MetaWorld: the first episode seed).
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
