@@ -193,18 +193,20 @@ pub fn generate_demos(n: usize, seed: u64) -> Vec<PointMazeDemo> {
 /// Every start-cell index once, in the greedy path-covering order of [`generate_demos`].
 fn covering_order(seed: u64) -> Vec<u64> {
     let maze = maze();
-    let mut remaining: Vec<u64> = (0..maze.start_cells().len() as u64).collect();
-    remaining.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
-    let paths: Vec<Vec<Cell>> = (0..remaining.len() as u64)
-        .map(|i| {
-            maze.path_to_goal(seed_cell(i))
+    let paths: Vec<Vec<Cell>> = maze
+        .start_cells()
+        .iter()
+        .map(|&cell| {
+            maze.path_to_goal(cell)
                 .expect("every start cell reaches the goal")
         })
         .collect();
+    let mut remaining: Vec<u64> = (0..paths.len() as u64).collect();
+    remaining.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
     let mut covered = HashSet::new();
     let mut order = Vec::with_capacity(remaining.len());
     while !remaining.is_empty() {
-        let new_cells = |&i: &u64| {
+        let new_cells = |i: u64| {
             paths[i as usize]
                 .iter()
                 .filter(|c| !covered.contains(*c))
@@ -213,7 +215,7 @@ fn covering_order(seed: u64) -> Vec<u64> {
         // The first of the best in shuffled order: `max_by_key` would keep the last.
         let best = (0..remaining.len())
             .rev()
-            .max_by_key(|&j| new_cells(&remaining[j]))
+            .max_by_key(|&j| new_cells(remaining[j]))
             .expect("remaining is not empty");
         let index = remaining.remove(best);
         covered.extend(paths[index as usize].iter().copied());
