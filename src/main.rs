@@ -85,12 +85,35 @@ enum Command {
         /// Actor counts, one whole run each (e2e).
         #[arg(long, value_delimiter = ',', default_value = "1,2,4")]
         actors: Vec<u32>,
+        #[command(flatten)]
+        learner: LearnerBenchArgs,
     },
     /// Run configurations.
     Config {
         #[command(subcommand)]
         command: ConfigCommand,
     },
+}
+
+/// The network and threads of `rfcl bench learner` (defaults: the RFCL network of spec 8.1 on a
+/// ManiSkill-sized task, 2 threads, both parallelisms side by side).
+#[derive(clap::Args)]
+struct LearnerBenchArgs {
+    /// CPU threads of the updates (learner).
+    #[arg(long, default_value_t = 2)]
+    threads: u32,
+    /// How the threads are used, one measurement each, side by side (learner): members, ops.
+    #[arg(long, value_delimiter = ',', default_value = "members,ops")]
+    parallelism: Vec<String>,
+    /// Hidden layer widths of the actor and the critics (learner).
+    #[arg(long, value_delimiter = ',', default_value = "256,256,256")]
+    hidden: Vec<u32>,
+    /// Critic ensemble size; the target minimum draws 2 from all of them (learner).
+    #[arg(long, default_value_t = 10)]
+    critics: u32,
+    /// Observation and action dims (learner), e.g. 39,4 for MetaWorld.
+    #[arg(long, value_delimiter = ',', num_args = 1, default_value = "42,8")]
+    dims: Vec<usize>,
 }
 
 #[derive(Subcommand)]
@@ -235,10 +258,11 @@ fn run(cli: Cli) -> Result<ExitCode> {
             config,
             envs,
             actors,
+            learner,
         } => match target.as_str() {
             "curriculum" => bench_curriculum(clients, seconds, connect).map(|()| ExitCode::SUCCESS),
             "actor" => bench_actor(&config, envs, seconds).map(|()| ExitCode::SUCCESS),
-            "learner" => bench_learner(seconds).map(|()| ExitCode::SUCCESS),
+            "learner" => bench_learner(seconds, &learner).map(|()| ExitCode::SUCCESS),
             "e2e" => {
                 let results = bench_e2e::run(&config, &actors, seconds)?;
                 let json = serde_json::json!({
@@ -284,16 +308,35 @@ fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Resu
     Ok(())
 }
 
-/// Full SAC updates per second (rfcl_learner::bench: obs 42, act 8, batch 256, [256, 256, 256],
-/// 10 critics; G80/F20 and G16/F1), best of 3 windows per schedule within about `seconds`. The
-/// side-by-side comparison with JAX is benches/compare_sac.sh.
-fn bench_learner(seconds: f64) -> Result<()> {
-    let cfg = rfcl_learner::bench::BenchConfig {
-        window_seconds: (seconds / 6.0).max(1.0),
-        ..Default::default()
+/// Full SAC updates per second (rfcl_learner::bench; G80/F20 and G16/F1), best of 3 windows per
+/// schedule within about `seconds`, once per parallelism asked for, side by side in one JSON
+/// report. The side-by-side comparison with JAX is benches/compare_sac.sh.
+fn bench_learner(seconds: f64, args: &LearnerBenchArgs) -> Result<()> {
+    use rfcl_core::config::Parallelism;
+    let [obs_dim, action_dim] = args.dims[..] else {
+        bail!("--dims: expected OBS,ACTION (e.g. 39,4), got {:?}", args.dims);
     };
-    let report = rfcl_learner::bench::run(&cfg)?;
-    println!("{}", serde_json::to_string_pretty(&report)?);
+    let mut reports = Vec::new();
+    for name in &args.parallelism {
+        let parallelism = match name.as_str() {
+            "members" => Parallelism::Members,
+            "ops" => Parallelism::Ops,
+            other => bail!("--parallelism: '{other}' is not one of members, ops"),
+        };
+        let cfg = rfcl_learner::bench::BenchConfig {
+            window_seconds: (seconds / 6.0).max(1.0),
+            threads: args.threads as i32,
+            parallelism,
+            hidden: args.hidden.clone(),
+            critic_ensemble: args.critics,
+            target_pool: args.critics,
+            obs_dim,
+            action_dim,
+            ..Default::default()
+        };
+        reports.push(rfcl_learner::bench::run(&cfg)?);
+    }
+    println!("{}", serde_json::to_string_pretty(&reports)?);
     Ok(())
 }
 

@@ -1,6 +1,6 @@
 //! `cargo bench -p rfcl-learner`: SAC updates/s on CPU as JSON (see `rfcl_learner::bench`).
 //! Environment: `RFCL_BENCH_SECONDS` (seconds per window), `RFCL_BENCH_WINDOWS` (best of N),
-//! `RFCL_BENCH_THREADS`, `RFCL_BENCH_SCHEDULES` (`G/F,...`), `RFCL_BENCH_PRECISION=bf16`,
+//! `RFCL_BENCH_THREADS`, `RFCL_BENCH_PARALLELISM=ops` (default members), `RFCL_BENCH_SCHEDULES` (`G/F,...`), `RFCL_BENCH_PRECISION=bf16`,
 //! `RFCL_BENCH_SHAPE` (`obs,action,batch,critics,hidden...`, e.g. `7,2,256,2,64,64` for the
 //! PointMaze test agent).
 use rfcl_core::config::MatmulPrecision;
@@ -28,6 +28,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 Ok::<_, Box<dyn std::error::Error>>((g.parse()?, f.parse()?))
             })
             .collect::<Result<_, _>>()?;
+    }
+    if std::env::var("RFCL_BENCH_PARALLELISM").as_deref() == Ok("ops") {
+        cfg.parallelism = rfcl_core::config::Parallelism::Ops;
     }
     if std::env::var("RFCL_BENCH_PRECISION").as_deref() == Ok("bf16") {
         cfg.matmul_precision = MatmulPrecision::Bf16;

@@ -9,7 +9,7 @@ use crate::error::Result;
 use crate::sac::Sac;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rfcl_core::config::{MatmulPrecision, NetworkConfig, SacConfig};
+use rfcl_core::config::{LearnerConfig, MatmulPrecision, NetworkConfig, Parallelism, SacConfig};
 use serde::Serialize;
 use std::time::{Duration, Instant};
 use tch::Tensor;
@@ -27,8 +27,10 @@ pub struct BenchConfig {
     /// (G, F) pairs.
     pub schedules: Vec<(u32, u32)>,
     pub matmul_precision: MatmulPrecision,
-    /// libtorch intra-op threads (see [`crate::runtime::configure_cpu`]).
+    /// CPU threads of the updates, used as `parallelism` says (see
+    /// [`crate::runtime::configure_cpu`] and [`Sac::set_member_threads`]).
     pub threads: i32,
+    pub parallelism: Parallelism,
     /// Untimed iterations before measuring, per schedule.
     pub warmup_iterations: u32,
     /// Timed windows per schedule; the best one is reported (the others are noise from whatever
@@ -54,6 +56,7 @@ impl Default for BenchConfig {
             schedules: vec![(80, 20), (16, 1)],
             matmul_precision: MatmulPrecision::Fp32,
             threads: 2,
+            parallelism: Parallelism::Members,
             warmup_iterations: 1,
             windows: 3,
             window_seconds: 5.0,
@@ -100,8 +103,15 @@ pub struct BenchReport {
 
 /// Runs every schedule of `cfg` and returns the measurements (print them with `serde_json`).
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
-    let runtime = crate::runtime::configure_cpu(cfg.threads);
+    // The yardstick is the GEMM peak with every thread on one op, whatever the parallelism.
+    crate::runtime::configure_cpu(cfg.threads);
     let peak = matmul_peak_gflop_per_s(PEAK_GEMM_SIZE, cfg.window_seconds.min(2.0));
+    let learner = LearnerConfig {
+        parallelism: cfg.parallelism,
+        ..LearnerConfig::default()
+    };
+    let (op_threads, member_threads) = learner.thread_split(cfg.threads.max(1) as u32);
+    let runtime = crate::runtime::configure_cpu(op_threads as i32);
     let net = NetworkConfig {
         actor_features: cfg.hidden.clone(),
         critic_features: cfg.hidden.clone(),
@@ -120,6 +130,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             ..SacConfig::default()
         };
         let mut sac = Sac::new(cfg.obs_dim, cfg.action_dim, &sac_cfg, &net, cfg.seed)?;
+        sac.set_member_threads(member_threads as usize);
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let rows = (g * cfg.batch_size) as usize;
         for _ in 0..cfg.warmup_iterations {
@@ -178,7 +189,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
     Ok(BenchReport {
         config: cfg.clone(),
         device: format!(
-            "cpu, {} threads, allocator tuned: {}",
+            "cpu, {} op threads x {member_threads} member threads, allocator tuned: {}",
             runtime.threads, runtime.allocator_tuned
         ),
         matmul_peak_gflop_per_s: peak,

@@ -143,10 +143,19 @@ async fn run(args: Args) -> Result<()> {
             run_dir.display()
         );
     }
+    let mut member_threads = 1;
     if cfg.sac.device == Device::Cpu {
         let threads = cfg.learner.threads_here(args.threads);
-        let applied = rfcl_learner::runtime::configure_cpu(threads as i32);
-        tracing::info!(threads = applied.threads, "SAC updates on the CPU");
+        let (op_threads, members) = cfg.learner.thread_split(threads);
+        let applied = rfcl_learner::runtime::configure_cpu(op_threads as i32);
+        member_threads = members as usize;
+        tracing::info!(
+            threads,
+            parallelism = ?cfg.learner.parallelism,
+            op_threads = applied.threads,
+            member_threads,
+            "SAC updates on the CPU"
+        );
         if applied.threads > 1 && std::env::var_os("OMP_WAIT_POLICY").is_none() {
             tracing::info!(
                 "OMP_WAIT_POLICY is not set: OpenMP threads spin while idle; set OMP_WAIT_POLICY=PASSIVE when actors share these cores (docs/LEARNER.md, \"Threads\")"
@@ -198,6 +207,8 @@ async fn run(args: Args) -> Result<()> {
                 .context("building the agent and the replay")?
         }
     };
+    let mut trainer = trainer;
+    trainer.set_member_threads(member_threads);
 
     let listener = TcpListener::bind(SocketAddr::new(args.bind, args.port))
         .await

@@ -238,10 +238,10 @@ impl StackedDense {
         }
     }
 
-    fn select(&self, index: &Tensor) -> Self {
+    fn map(&self, f: &impl Fn(&Tensor) -> Tensor) -> Self {
         Self {
-            w: self.w.detach().index_select(0, index),
-            b: self.b.detach().index_select(0, index),
+            w: f(&self.w),
+            b: f(&self.b),
         }
     }
 }
@@ -352,18 +352,53 @@ impl CriticEnsemble {
     /// the target critic's drawn members (spec 5.3).
     pub fn select(&self, members: &[i64]) -> CriticEnsemble {
         let index = Tensor::from_slice(members).to_device(self.output.w.device());
+        self.map_params(members.len() as i64, |p| p.detach().index_select(0, &index))
+    }
+
+    /// Members `start..start + len` as a sub-ensemble whose parameters share this ensemble's
+    /// memory (no copy) but are fresh autograd leaves, so a thread can run them and take gradients
+    /// with respect to them alone (see `Sac`'s member-parallel updates). `requires_grad` makes the
+    /// leaves trainable; without it gradients can still flow through them to the inputs.
+    pub fn shard(&self, start: i64, len: i64, requires_grad: bool) -> CriticEnsemble {
+        self.map_params(len, |p| {
+            p.detach()
+                .narrow(0, start, len)
+                .set_requires_grad(requires_grad)
+        })
+    }
+
+    /// Every parameter under its `VarStore` name (`hidden0.kernel`, `norm0.scale`, ...), sorted by
+    /// name: the order [`crate::adam::Adam`] keeps its parameters in.
+    pub fn named_parameters(&self) -> Vec<(String, Tensor)> {
+        let mut out = Vec::new();
+        for (i, layer) in self.hidden.iter().enumerate() {
+            out.push((format!("hidden{i}.kernel"), layer.w.shallow_clone()));
+            out.push((format!("hidden{i}.bias"), layer.b.shallow_clone()));
+        }
+        for (i, norm) in self.norms.iter().enumerate() {
+            out.push((format!("norm{i}.scale"), norm.scale.shallow_clone()));
+            out.push((format!("norm{i}.bias"), norm.bias.shallow_clone()));
+        }
+        out.push(("output.kernel".into(), self.output.w.shallow_clone()));
+        out.push(("output.bias".into(), self.output.b.shallow_clone()));
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        out
+    }
+
+    /// The same network with every parameter replaced by `f(parameter)`, `members` members.
+    fn map_params(&self, members: i64, f: impl Fn(&Tensor) -> Tensor) -> CriticEnsemble {
         CriticEnsemble {
-            members: members.len() as i64,
-            hidden: self.hidden.iter().map(|l| l.select(&index)).collect(),
+            members,
+            hidden: self.hidden.iter().map(|l| l.map(&f)).collect(),
             norms: self
                 .norms
                 .iter()
                 .map(|n| StackedNorm {
-                    scale: n.scale.detach().index_select(0, &index),
-                    bias: n.bias.detach().index_select(0, &index),
+                    scale: f(&n.scale),
+                    bias: f(&n.bias),
                 })
                 .collect(),
-            output: self.output.select(&index),
+            output: self.output.map(&f),
             layer_norm_eps: self.layer_norm_eps,
             precision: self.precision,
         }

@@ -90,6 +90,9 @@ pub struct Sac {
     /// (target, online) critic parameters, matched by name.
     polyak_pairs: Vec<(Tensor, Tensor)>,
     rng: ChaCha8Rng,
+    /// Threads that run the critic ensemble's members in parallel (1 = one batched computation on
+    /// the calling thread); see [`Sac::set_member_threads`].
+    member_threads: usize,
 }
 
 impl Sac {
@@ -196,7 +199,27 @@ impl Sac {
             log_alpha,
             polyak_pairs,
             rng,
+            member_threads: 1,
         })
+    }
+
+    /// Runs the critic ensemble's members on `threads` threads (at most one per member, each with
+    /// single-threaded libtorch ops): every critic and actor update splits the members into
+    /// contiguous shards, one per thread, and joins their gradients. The maths are those of the
+    /// single batched computation (same losses, same gradients up to float summation order, same
+    /// RNG draws); only the work is spread. On a CPU this uses cores that libtorch's per-op
+    /// threading leaves idle for networks of RFCL's size (benches/RESULTS.md). CUDA ignores it.
+    pub fn set_member_threads(&mut self, threads: usize) {
+        let members = self.critic.members() as usize;
+        self.member_threads = match self.device {
+            Device::Cpu => threads.clamp(1, members),
+            _ => 1,
+        };
+    }
+
+    /// See [`Sac::set_member_threads`].
+    pub fn member_threads(&self) -> usize {
+        self.member_threads
     }
 
     /// One training iteration (spec 5.2) on a prepared batch of G·B rows, already interleaved
@@ -256,13 +279,21 @@ impl Sac {
             self.cfg.num_min_qs as usize,
         );
         let noise = self.policy_noise(minibatch.rows());
-        let (loss, q) = self.critic_loss(minibatch, &members, &noise);
-        self.critic_opt.minimize(&loss);
+        let step = if self.member_threads > 1 {
+            let target = self.critic_target(minibatch, &members, &noise);
+            let (step, grads) = self.critic_gradients_sharded(minibatch, &target);
+            self.critic_opt.step(grads);
+            step
+        } else {
+            let (loss, q) = self.critic_loss(minibatch, &members, &noise);
+            self.critic_opt.minimize(&loss);
+            CriticStep {
+                loss: loss.detach(),
+                q: q.mean(None).detach(),
+            }
+        };
         polyak_update(&self.polyak_pairs, self.cfg.tau);
-        CriticStep {
-            loss: loss.detach(),
-            q: q.mean(None).detach(),
-        }
+        step
     }
 
     /// The critic loss for given target members and policy noise at s′: (loss, Q `[E, B]`).
@@ -272,7 +303,15 @@ impl Sac {
         members: &[i64],
         noise: &Tensor,
     ) -> (Tensor, Tensor) {
-        let target = tch::no_grad(|| {
+        let target = self.critic_target(minibatch, members, noise);
+        let q = self.critic.forward(&minibatch.obs, &minibatch.action);
+        (mean_squared_td_error(&q, &target), q)
+    }
+
+    /// The regression target y `[B]` of spec 5.3 "Critic" (no autograd history), for given target
+    /// members and policy noise at s′.
+    pub fn critic_target(&self, minibatch: &Batch, members: &[i64], noise: &Tensor) -> Tensor {
+        tch::no_grad(|| {
             let next = self.actor.sample(&minibatch.next_obs, noise);
             let next_q = self
                 .target_critic
@@ -288,20 +327,83 @@ impl Sac {
                 &next_v,
                 self.cfg.discount,
             )
-        });
-        let q = self.critic.forward(&minibatch.obs, &minibatch.action);
-        (mean_squared_td_error(&q, &target), q)
+        })
+    }
+
+    /// The critic loss's value and its gradients (in the critic optimiser's parameter order), with
+    /// the members split over [`Sac::member_threads`] threads. Shard s of E_s members returns
+    /// its mean squared TD error times E_s/E: the shards' losses then add up to the mean over all
+    /// E members, and each member's gradient is the one of the whole loss.
+    fn critic_gradients_sharded(
+        &self,
+        minibatch: &Batch,
+        target: &Tensor,
+    ) -> (CriticStep, Vec<Tensor>) {
+        let members = self.critic.members();
+        let jobs: Vec<CriticShardJob> = shard_ranges(members, self.member_threads)
+            .into_iter()
+            .map(|(start, len)| CriticShardJob {
+                shard: self.critic.shard(start, len, true),
+                weight: len as f64 / members as f64,
+                obs: minibatch.obs.shallow_clone(),
+                action: minibatch.action.shallow_clone(),
+                target: target.shallow_clone(),
+            })
+            .collect();
+        let parts = run_on_threads(jobs, CriticShardJob::run);
+        let loss = Tensor::stack(&parts.iter().map(|p| &p.loss).collect::<Vec<_>>(), 0).sum(None);
+        let q_sum = Tensor::stack(&parts.iter().map(|p| &p.q_sum).collect::<Vec<_>>(), 0).sum(None);
+        let params = parts[0].grads.len();
+        let grads = (0..params)
+            .map(|i| Tensor::cat(&parts.iter().map(|p| &p.grads[i]).collect::<Vec<_>>(), 0))
+            .collect();
+        let q = q_sum / (members * minibatch.rows()) as f64;
+        (CriticStep { loss, q }, grads)
     }
 
     /// One actor update (spec 5.3 "Actor"): gradients reach the actor only.
     pub fn update_actor(&mut self, obs: &Tensor) -> ActorStep {
         let noise = self.policy_noise(obs.size()[0]);
-        let (loss, log_prob) = self.actor_loss(obs, &noise);
-        self.actor_opt.minimize(&loss);
+        let (loss, log_prob) = if self.member_threads > 1 {
+            let (value, surrogate, log_prob) = self.actor_loss_sharded(obs, &noise);
+            self.actor_opt.minimize(&surrogate);
+            (value, log_prob)
+        } else {
+            let (loss, log_prob) = self.actor_loss(obs, &noise);
+            self.actor_opt.minimize(&loss);
+            (loss, log_prob)
+        };
         ActorStep {
             loss: loss.detach(),
             entropy: -log_prob.mean(None).detach(),
         }
+    }
+
+    /// Spec 5.3 "Actor" with the critic members split over [`Sac::member_threads`] threads:
+    /// (the loss's value, a surrogate with the loss's gradient for the actor, log π `[B]`).
+    /// Each shard returns Σ_k Q_k(s, a) over its members and its gradient with respect to the
+    /// action; with g = ∂ mean_k Q_k / ∂a, the surrogate replaces mean_k Q_k(s, a) by a·g, whose
+    /// gradient through a = tanh(u(θ)) is the same.
+    fn actor_loss_sharded(&self, obs: &Tensor, noise: &Tensor) -> (Tensor, Tensor, Tensor) {
+        let pi = self.actor.sample(obs, noise);
+        let members = self.critic.members();
+        let jobs: Vec<ActorShardJob> = shard_ranges(members, self.member_threads)
+            .into_iter()
+            .map(|(start, len)| ActorShardJob {
+                shard: self.critic.shard(start, len, false),
+                obs: obs.shallow_clone(),
+                action: pi.action.detach().set_requires_grad(true),
+            })
+            .collect();
+        let parts = run_on_threads(jobs, ActorShardJob::run);
+        let sum = |ts: Vec<&Tensor>| Tensor::stack(&ts, 0).sum_dim_intlist(0, false, None);
+        let q_mean = sum(parts.iter().map(|p| &p.q_sum).collect()) / members as f64;
+        let grad_mean = sum(parts.iter().map(|p| &p.action_grad).collect()) / members as f64;
+        let alpha = self.alpha();
+        let value = policy_loss(&alpha, &pi.log_prob.detach(), &q_mean.unsqueeze(0));
+        let linearised_q = (&pi.action * grad_mean).sum_dim_intlist(-1, false, None);
+        let surrogate = policy_loss(&alpha, &pi.log_prob, &linearised_q.unsqueeze(0));
+        (value, surrogate, pi.log_prob)
     }
 
     /// The actor loss for given policy noise: (loss, log π `[B]`).
@@ -451,6 +553,111 @@ pub fn polyak_update(pairs: &[(Tensor, Tensor)], tau: f64) {
             let _ = target.shallow_clone().lerp_(online, tau);
         }
     });
+}
+
+/// `shards` contiguous (start, len) member ranges covering 0..members, sizes differing by at most
+/// one (the first ones get the extra members).
+pub fn shard_ranges(members: i64, shards: usize) -> Vec<(i64, i64)> {
+    let shards = (shards as i64).clamp(1, members.max(1));
+    let (base, extra) = (members / shards, members % shards);
+    let mut start = 0;
+    (0..shards)
+        .map(|s| {
+            let len = base + i64::from(s < extra);
+            let range = (start, len);
+            start += len;
+            range
+        })
+        .collect()
+}
+
+/// Runs `work` on every job, the first on the calling thread and each other on a scoped thread of
+/// its own with single-threaded libtorch ops; results in job order. A panic in a job is re-raised.
+fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, work: fn(J) -> T) -> Vec<T> {
+    let mut jobs = jobs.into_iter();
+    let Some(first) = jobs.next() else {
+        return Vec::new();
+    };
+    std::thread::scope(|scope| {
+        let others: Vec<_> = jobs
+            .map(|job| {
+                scope.spawn(move || {
+                    tch::set_num_threads(1);
+                    work(job)
+                })
+            })
+            .collect();
+        let mut out = vec![work(first)];
+        for handle in others {
+            out.push(handle.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+        }
+        out
+    })
+}
+
+/// One shard's share of a critic update (see `Sac::critic_gradients_sharded`).
+struct CriticShardJob {
+    shard: CriticEnsemble,
+    /// E_s / E.
+    weight: f64,
+    obs: Tensor,
+    action: Tensor,
+    target: Tensor,
+}
+
+struct CriticShardPart {
+    loss: Tensor,
+    q_sum: Tensor,
+    grads: Vec<Tensor>,
+}
+
+impl CriticShardJob {
+    fn run(self) -> CriticShardPart {
+        let q = self.shard.forward(&self.obs, &self.action);
+        let loss = mean_squared_td_error(&q, &self.target) * self.weight;
+        let params: Vec<Tensor> = self
+            .shard
+            .named_parameters()
+            .into_iter()
+            .map(|(_, p)| p)
+            .collect();
+        let grads = Tensor::run_backward(&[&loss], &params, false, false);
+        CriticShardPart {
+            loss: loss.detach(),
+            q_sum: q.detach().sum(None),
+            grads,
+        }
+    }
+}
+
+/// One shard's share of an actor update (see `Sac::actor_loss_sharded`).
+struct ActorShardJob {
+    /// Parameters without gradients: only ∂Q/∂a is taken.
+    shard: CriticEnsemble,
+    obs: Tensor,
+    /// A leaf copy of the policy's action, requiring gradients.
+    action: Tensor,
+}
+
+struct ActorShardPart {
+    /// Σ_k Q_k(s, a) over the shard's members, `[B]`.
+    q_sum: Tensor,
+    /// ∂ Σ_k Σ_b Q_k(s_b, a_b) / ∂a, `[B, A]`.
+    action_grad: Tensor,
+}
+
+impl ActorShardJob {
+    fn run(self) -> ActorShardPart {
+        let q_sum = self
+            .shard
+            .forward(&self.obs, &self.action)
+            .sum_dim_intlist(0, false, None);
+        let mut grads = Tensor::run_backward(&[&q_sum.sum(None)], &[&self.action], false, false);
+        ActorShardPart {
+            q_sum: q_sum.detach(),
+            action_grad: grads.pop().expect("one input, one gradient"),
+        }
+    }
 }
 
 /// Options that cannot work, rejected before anything is allocated.

@@ -240,6 +240,12 @@ impl Trainer {
         )
     }
 
+    /// Spreads the critic ensemble's members over `threads` threads (see
+    /// [`Sac::set_member_threads`]); the maths stay the same.
+    pub fn set_member_threads(&mut self, threads: usize) {
+        self.sac.set_member_threads(threads);
+    }
+
     /// Continues the run whose checkpoint `manifest` describes: weights, optimiser states,
     /// temperature, RNGs, counters, UTD limiter and both buffers as they were. A backlog of owed
     /// iterations (a changed schedule or mode) is clamped, not burst.

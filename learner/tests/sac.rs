@@ -376,6 +376,51 @@ fn train_iteration_follows_the_schedule_of_spec_5_2() {
     ));
 }
 
+/// The member-parallel updates (`set_member_threads`) compute the batched updates' maths: after
+/// several training iterations with 4 critics on 1, 2, 3 and 4 threads (shards of 4, 2+2, 2+1+1,
+/// 1+1+1+1 members), every parameter, optimiser state and metric agrees to float rounding.
+#[test]
+fn member_threads_give_the_batched_updates() {
+    let (cfg, _) = small_config(); // G 4, F 2, B 6, 4 critics
+    let (batch, _) = minibatch(4 * 6, 91);
+    let mut reference = agent(&cfg, 21);
+    assert_eq!(reference.member_threads(), 1);
+    let expected: Vec<_> = (0..3).map(|_| reference.train_iteration(&batch).unwrap()).collect();
+    for threads in [2, 3, 4, 9] {
+        let mut sharded = agent(&cfg, 21);
+        sharded.set_member_threads(threads);
+        assert_eq!(sharded.member_threads(), threads.min(4));
+        for want in &expected {
+            let got = sharded.train_iteration(&batch).unwrap();
+            for ((tag, a), (_, b)) in got.tagged().iter().zip(want.tagged().iter()) {
+                assert!((a - b).abs() < 1e-12, "{threads} threads, {tag}: {a} vs {b}");
+            }
+        }
+        let (want, got) = (all_params(&reference), all_params(&sharded));
+        for (name, w) in &want {
+            let g = &got[name];
+            let diff = w.iter().zip(g).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+            assert!(diff < 1e-12, "{threads} threads, {name}: max difference {diff}");
+        }
+        for ((name, a), (_, b)) in reference.optimizers().iter().zip(sharded.optimizers().iter()) {
+            for ((key, x), (_, y)) in a.state().iter().zip(b.state().iter()) {
+                let diff = (x - y).abs().max().double_value(&[]);
+                assert!(diff < 1e-12, "{threads} threads, {name} {key}: {diff}");
+            }
+        }
+    }
+}
+
+#[test]
+fn shard_ranges_split_members_evenly_and_contiguously() {
+    use rfcl_learner::sac::shard_ranges;
+    assert_eq!(shard_ranges(10, 1), vec![(0, 10)]);
+    assert_eq!(shard_ranges(10, 2), vec![(0, 5), (5, 5)]);
+    assert_eq!(shard_ranges(10, 3), vec![(0, 4), (4, 3), (7, 3)]);
+    assert_eq!(shard_ranges(2, 5), vec![(0, 1), (1, 1)]);
+    assert_eq!(shard_ranges(4, 0), vec![(0, 4)]);
+}
+
 #[test]
 fn fixed_temperature_stays_put() {
     let (cfg, _) = small_config();

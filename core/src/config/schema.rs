@@ -356,9 +356,24 @@ pub struct ServiceConfig {
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LearnerConfig {
-    /// libtorch CPU threads for the SAC updates; `None` = all cores but one (at least 1), which
-    /// leaves a core to the actors and the curriculum server on the same machine.
+    /// CPU threads for the SAC updates; `None` = all cores but one (at least 1), which leaves a
+    /// core to the actors and the curriculum server on the same machine.
     pub threads: Option<u32>,
+    /// How the SAC updates use those threads on a CPU.
+    pub parallelism: Parallelism,
+}
+
+/// How the learner spreads its SAC updates over `learner.threads` CPU threads.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Parallelism {
+    /// The critic ensemble's members are split into one shard per thread, each run with
+    /// single-threaded libtorch ops; the threads meet twice per update.
+    #[default]
+    Members,
+    /// One batched computation whose libtorch ops each use every thread (OpenMP); the threads
+    /// meet at every op.
+    Ops,
 }
 
 impl LearnerConfig {
@@ -370,6 +385,16 @@ impl LearnerConfig {
                 .unwrap_or(u32::MAX)
                 .max(1)
         })
+    }
+
+    /// `(libtorch intra-op threads, critic member threads)` for `threads` threads under
+    /// `parallelism`.
+    pub fn thread_split(&self, threads: u32) -> (u32, u32) {
+        let threads = threads.max(1);
+        match self.parallelism {
+            Parallelism::Members => (1, threads),
+            Parallelism::Ops => (threads, 1),
+        }
     }
 
     /// [`resolve_threads`](Self::resolve_threads) with this machine's core count.
@@ -570,10 +595,26 @@ mod tests {
         assert_eq!(default.resolve_threads(None, 16), 15);
         assert_eq!(default.resolve_threads(None, 1), 1);
         assert_eq!(default.resolve_threads(None, 0), 1);
-        let set = LearnerConfig { threads: Some(4) };
+        let set = LearnerConfig {
+            threads: Some(4),
+            ..LearnerConfig::default()
+        };
         assert_eq!(set.resolve_threads(None, 2), 4);
         assert_eq!(set.resolve_threads(Some(3), 2), 3);
         assert_eq!(default.resolve_threads(Some(2), 16), 2);
         assert!(default.threads_here(None) >= 1);
+    }
+
+    #[test]
+    fn learner_parallelism_splits_threads_between_members_and_ops() {
+        let members = LearnerConfig::default();
+        assert_eq!(members.parallelism, Parallelism::Members);
+        assert_eq!(members.thread_split(2), (1, 2));
+        assert_eq!(members.thread_split(0), (1, 1));
+        let ops = LearnerConfig {
+            parallelism: Parallelism::Ops,
+            ..LearnerConfig::default()
+        };
+        assert_eq!(ops.thread_split(3), (3, 1));
     }
 }
