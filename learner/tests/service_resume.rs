@@ -114,7 +114,9 @@ impl Run {
             args[at] = "--resume".into();
         }
         let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-        Learner::start(&args)
+        // Two threads: the critic's two members update in parallel (learner.parallelism
+        // members), and that too must resume exactly.
+        Learner::start_with_threads(2, &args)
     }
 }
 

@@ -240,10 +240,15 @@ pub fn run_learner(args: &[&std::ffi::OsStr]) -> (ExitStatus, String, String) {
 impl Learner {
     /// Starts `learner --threads 1 ARGS` and waits for its ready line.
     pub fn start(args: &[&std::ffi::OsStr]) -> Learner {
+        Self::start_with_threads(1, args)
+    }
+
+    /// Starts `learner --threads THREADS ARGS` and waits for its ready line.
+    pub fn start_with_threads(threads: u32, args: &[&std::ffi::OsStr]) -> Learner {
         let guard = hdf5_fork_guard();
         let mut child = Command::new(env!("CARGO_BIN_EXE_learner"))
             .arg("--threads")
-            .arg("1")
+            .arg(threads.to_string())
             .args(args)
             .env("OMP_WAIT_POLICY", "PASSIVE")
             .stdout(Stdio::piped())
