@@ -314,7 +314,10 @@ fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Resu
 fn bench_learner(seconds: f64, args: &LearnerBenchArgs) -> Result<()> {
     use rfcl_core::config::Parallelism;
     let [obs_dim, action_dim] = args.dims[..] else {
-        bail!("--dims: expected OBS,ACTION (e.g. 39,4), got {:?}", args.dims);
+        bail!(
+            "--dims: expected OBS,ACTION (e.g. 39,4), got {:?}",
+            args.dims
+        );
     };
     let mut reports = Vec::new();
     for name in &args.parallelism {

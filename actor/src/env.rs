@@ -103,4 +103,11 @@ pub trait Env: Send {
 
     /// The current state, laid out as [`Env::state_layout`] says.
     fn get_state(&self) -> Vec<f32>;
+
+    /// Simulator worker restarts so far: a Python env restarts a crashed or hung worker and
+    /// replays the episode in flight (crate::python), which the actor reports so that the run
+    /// sees it. Native envs never restart.
+    fn restarts(&self) -> u64 {
+        0
+    }
 }

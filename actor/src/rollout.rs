@@ -216,6 +216,12 @@ impl Rollout {
         self.env_steps = steps;
     }
 
+    /// Simulator worker restarts of this rollout's envs so far ([`Env::restarts`]): the reports'
+    /// `sim_restarts`.
+    pub fn sim_restarts(&self) -> u64 {
+        self.slots.iter().map(|s| s.env.restarts()).sum()
+    }
+
     /// Episodes finished.
     pub fn episodes(&self) -> u64 {
         self.episodes
@@ -295,6 +301,7 @@ impl Rollout {
         out: &mut StepOutput,
     ) -> Result<(), RolloutError> {
         let settings = self.settings;
+        let first_finished = out.finished.len();
         for (index, slot) in self.slots.iter_mut().enumerate() {
             let Some(episode) = slot.episode.as_mut() else {
                 continue;
@@ -376,9 +383,15 @@ impl Rollout {
                         actor_id: settings.actor_id,
                         actor_env_steps: self.env_steps,
                         policy_env_steps: done.policy_env_steps,
+                        // Stamped below, once every env has stepped (a restart may happen in any).
+                        sim_restarts: 0,
                     },
                 ));
             }
+        }
+        let sim_restarts = self.sim_restarts();
+        for (_, report) in &mut out.finished[first_finished..] {
+            report.sim_restarts = sim_restarts;
         }
         Ok(())
     }
@@ -414,14 +427,28 @@ mod tests {
         pos: f32,
         layout: crate::env::StateLayout,
         resets: Vec<(Option<u64>, Option<Vec<f32>>)>,
+        /// Worker restarts so far; [`Line::restarting`] counts one on every step, as a Python
+        /// env whose worker keeps crashing would.
+        restarts: u64,
+        restarts_per_step: u64,
     }
 
     impl Line {
         fn boxed() -> Box<dyn Env> {
+            Self::with_restarts_per_step(0)
+        }
+
+        fn restarting() -> Box<dyn Env> {
+            Self::with_restarts_per_step(1)
+        }
+
+        fn with_restarts_per_step(restarts_per_step: u64) -> Box<dyn Env> {
             Box::new(Line {
                 pos: 0.0,
                 layout: crate::env::StateLayout::flat(1),
                 resets: Vec::new(),
+                restarts: 0,
+                restarts_per_step,
             })
         }
     }
@@ -466,6 +493,7 @@ mod tests {
         }
         fn step(&mut self, action: &[f32]) -> Result<crate::env::StepOutcome, EnvError> {
             self.pos += action[0];
+            self.restarts += self.restarts_per_step;
             Ok(crate::env::StepOutcome {
                 obs: vec![self.pos],
                 success: self.pos >= 3.0,
@@ -473,6 +501,9 @@ mod tests {
         }
         fn get_state(&self) -> Vec<f32> {
             vec![self.pos]
+        }
+        fn restarts(&self) -> u64 {
+            self.restarts
         }
     }
 
@@ -560,6 +591,7 @@ mod tests {
                 actor_id: 7,
                 actor_env_steps: 4,
                 policy_env_steps: 500,
+                sim_restarts: 0,
             }
         );
         assert_eq!(r.idle_envs(), [0]);
@@ -702,6 +734,25 @@ mod tests {
         assert_eq!(out.transitions.len(), 1);
         assert_eq!(out.finished[0].1.actor_env_steps, 5);
         assert_eq!(r.active_envs(), 0);
+    }
+
+    #[test]
+    fn reports_carry_the_worker_restarts_of_all_envs() {
+        let mut r = Rollout::new(vec![Line::boxed(), Line::restarting()], 1, settings(false));
+        r.begin(0, lease(1, LeaseKind::DemoState, vec![0.0], 2, 1))
+            .unwrap();
+        r.begin(1, lease(2, LeaseKind::DemoState, vec![0.0], 3, 1))
+            .unwrap();
+        let mut out = StepOutput::default();
+        r.step(None, &mut out).unwrap();
+        r.step(None, &mut out).unwrap();
+        // Env 0 never restarts; its report counts env 1's restarts, including the one of the
+        // step in which env 0 finished.
+        assert_eq!(out.finished[0].1.sim_restarts, 2);
+        out.clear();
+        r.step(None, &mut out).unwrap();
+        assert_eq!(out.finished[0].1.sim_restarts, 3);
+        assert_eq!(r.sim_restarts(), 3);
     }
 
     #[test]

@@ -59,4 +59,9 @@ pub struct EpisodeReport {
     pub actor_env_steps: u64,
     /// Env steps the learner had received when it published `policy_version`.
     pub policy_env_steps: u64,
+    /// Simulator worker restarts of this actor process so far (heartbeat, like `actor_env_steps`).
+    /// A crashed or hung Python worker is restarted and its episode replayed, so the episode
+    /// itself shows nothing: this count is how the run sees it.
+    #[serde(default)]
+    pub sim_restarts: u64,
 }

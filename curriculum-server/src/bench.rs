@@ -66,6 +66,7 @@ pub async fn acquire_report(
                         actor_id: i as u32,
                         actor_env_steps: 0,
                         policy_env_steps: 0,
+                        actor_sim_restarts: 0,
                     };
                     let request = v1::ReportAndAcquireRequest {
                         report: Some(report),

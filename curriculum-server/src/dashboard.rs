@@ -22,6 +22,10 @@ pub struct DashboardView {
     pub episodes_per_s: f64,
     pub open_leases: u64,
     pub expired_leases: u64,
+    /// Simulator worker restarts over all actors and their respawns (a restarted worker replays
+    /// its episode, so nothing else shows it). Absent from older servers' JSON.
+    #[serde(default)]
+    pub sim_worker_restarts: u64,
     pub refused_reports: RefusedReports,
     pub solved_frac: f64,
     pub demos: Vec<DemoBar>,
@@ -103,6 +107,9 @@ pub struct ActorRow {
     pub env_steps: u64,
     pub episodes: u64,
     pub open_leases: u64,
+    /// Simulator worker restarts of this actor id over all its processes.
+    #[serde(default)]
+    pub sim_restarts: u64,
 }
 
 /// Eval outcomes of one policy version.
@@ -412,6 +419,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 <h1>rfcl curriculum · {name} <small>({env})</small></h1>
 <p class="kv"><span id="stage">stage <b>{stage}</b> (epoch {epoch})</span><span>env steps <b>{steps}</b></span>
 <span>episodes {episodes} ({eps:.1}/s)</span><span>open leases {open}</span><span>expired leases {expired}</span>
+<span>sim worker restarts {restarts}</span>
 <span>demos solved {solved:.0}%</span></p>
 <p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}</span></p>
 "#,
@@ -424,6 +432,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         eps = view.episodes_per_s,
         open = view.open_leases,
         expired = view.expired_leases,
+        restarts = view.sim_worker_restarts,
         solved = view.solved_frac * 100.0,
         dup = view.refused_reports.duplicate,
         rexp = view.refused_reports.expired,
@@ -490,12 +499,13 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         }
         h.push_str("</table>\n");
     }
-    h.push_str("<h2>Actors</h2>\n<table id=\"actors\"><tr><th>actor</th><th>last seen</th><th>env steps</th><th>episodes</th><th>open leases</th></tr>\n");
+    h.push_str("<h2>Actors</h2>\n<table id=\"actors\"><tr><th>actor</th><th>last seen</th><th>env steps</th><th>episodes</th><th>open leases</th><th>sim worker restarts</th></tr>\n");
     for a in &view.actors {
-        let _ = writeln!(
+        let _ =
+            writeln!(
             h,
-            "<tr><td>{}</td><td>{:.1} s ago</td><td>{}</td><td>{}</td><td>{}</td></tr>",
-            a.actor_id, a.seconds_since_seen, a.env_steps, a.episodes, a.open_leases
+            "<tr><td>{}</td><td>{:.1} s ago</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            a.actor_id, a.seconds_since_seen, a.env_steps, a.episodes, a.open_leases, a.sim_restarts
         );
     }
     h.push_str("</table>\n<p><a href=\"/api/state\">JSON</a> · <a href=\"/metrics\">metrics</a></p></body></html>\n");
@@ -565,6 +575,12 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         "leases_expired",
         "Leases that expired unreported",
         view.expired_leases,
+    );
+    counter(
+        &mut r,
+        "sim_worker_restarts",
+        "Simulator worker processes restarted after a crash or hang (episode replayed)",
+        view.sim_worker_restarts,
     );
     gauge(
         &mut r,
@@ -668,6 +684,26 @@ mod tests {
     }
 
     #[test]
+    fn the_page_shows_sim_worker_restarts_in_total_and_per_actor() {
+        let mut v = view();
+        v.sim_worker_restarts = 7;
+        v.actors = vec![ActorRow {
+            actor_id: 3,
+            seconds_since_seen: 1.0,
+            env_steps: 100,
+            episodes: 4,
+            open_leases: 1,
+            sim_restarts: 7,
+        }];
+        let html = render_html(&v, 2);
+        assert!(html.contains("sim worker restarts 7"), "{html}");
+        assert!(
+            html.contains("<td>100</td><td>4</td><td>1</td><td>7</td></tr>"),
+            "{html}"
+        );
+    }
+
+    #[test]
     fn demo_bars_are_svg_rectangles() {
         let svg = demo_bars_svg(&view().demos);
         assert!(svg.starts_with("<svg"));
@@ -680,7 +716,12 @@ mod tests {
     fn metrics_use_rfcl_names_and_labels() {
         let mut v = view();
         v.refused_reports.duplicate = 3;
+        v.sim_worker_restarts = 2;
         let text = metrics_text(&v, 42);
+        assert!(
+            text.contains("rfcl_curriculum_sim_worker_restarts_total 2"),
+            "{text}"
+        );
         assert!(
             text.contains("rfcl_curriculum_leases_granted_total 42"),
             "{text}"

@@ -96,6 +96,25 @@ pub struct ActorStats {
     pub last_seen: f64,
     pub env_steps: u64,
     pub episodes: u64,
+    /// Simulator worker restarts of this actor id over all its processes: a restarted worker
+    /// replays its episode and leaves no other trace. Absent in older snapshots.
+    #[serde(default)]
+    pub sim_restarts: u64,
+    /// The last restart count this actor id reported (its current process's count).
+    #[serde(default)]
+    pub last_reported_sim_restarts: u64,
+}
+
+impl ActorStats {
+    /// Takes a report's restart heartbeat, which counts the reporting process's restarts: growth
+    /// is new restarts; a value below the last one comes from a respawned actor process, which
+    /// counts from 0 again, so all of it is new.
+    pub fn record_sim_restarts(&mut self, reported: u64) {
+        self.sim_restarts += reported
+            .checked_sub(self.last_reported_sim_restarts)
+            .unwrap_or(reported);
+        self.last_reported_sim_restarts = reported;
+    }
 }
 
 /// Counters and history: everything the dashboard shows beyond the curriculum itself.
@@ -114,6 +133,13 @@ pub struct Stats {
     /// (time, episodes) of the previous history sample, for episodes/s.
     pub last_sample: (f64, u64),
     pub episodes_per_s: f64,
+}
+
+impl Stats {
+    /// Simulator worker restarts of the whole run, over every actor and its respawns.
+    pub fn sim_worker_restarts(&self) -> u64 {
+        self.actors.values().map(|a| a.sim_restarts).sum()
+    }
 }
 
 const RECENT_EPISODES: usize = 100;
@@ -283,6 +309,7 @@ impl ServerState {
         let actor = self.stats.actors.entry(report.actor_id).or_default();
         actor.last_seen = now;
         actor.env_steps = actor.env_steps.max(report.actor_env_steps);
+        actor.record_sim_restarts(report.sim_restarts);
         let grant = self
             .leases
             .take_for_report(report.lease_id, report.stage_epoch)?;
@@ -487,6 +514,7 @@ impl ServerState {
                 env_steps: a.env_steps,
                 episodes: a.episodes,
                 open_leases: open_per_actor.get(id).copied().unwrap_or(0),
+                sim_restarts: a.sim_restarts,
             })
             .collect();
         let evals = self
@@ -514,6 +542,7 @@ impl ServerState {
             episodes_per_s: self.stats.episodes_per_s,
             open_leases: self.leases.open_count() as u64,
             expired_leases: self.leases.expired_total,
+            sim_worker_restarts: self.stats.sim_worker_restarts(),
             refused_reports: RefusedReports {
                 duplicate: r.duplicate,
                 expired: r.expired,
@@ -720,6 +749,68 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sim_worker_restarts_add_up_over_reports_and_respawns() {
+        let metas = [DemoMeta {
+            success: vec![false, false, true],
+            reset_seed: Some(0),
+        }];
+        let cfg = RunConfig::default();
+        let demos = DemoResets {
+            state_dim: 1,
+            // 3 actions, so 4 states.
+            states: vec![vec![0.0, 1.0, 2.0, 3.0]],
+            reset: vec![ResetArgs::default()],
+        };
+        let mut state = ServerState::new(Curriculum::new(&cfg, &metas).unwrap(), 0.0);
+        let mut report = |actor_id: u32, sim_restarts: u64| {
+            let request = AcquireRequest {
+                actor_id,
+                env_index: 0,
+                eval: false,
+            };
+            let lease = state.acquire(request, &cfg, &demos, 1.0).unwrap();
+            let report = EpisodeReport {
+                lease_id: lease.lease_id,
+                success_at_end: false,
+                success_once: false,
+                episode_return: 0.0,
+                length: 1,
+                policy_version: 0,
+                stage_epoch: lease.stage_epoch,
+                actor_id,
+                actor_env_steps: 0,
+                policy_env_steps: 0,
+                sim_restarts,
+            };
+            state.report(&report, 1.0).unwrap();
+        };
+        // Actor 1's first process: 2 restarts, then none, then 1 more.
+        report(1, 2);
+        report(1, 2);
+        report(1, 3);
+        // Respawned: the new process counts from 0 again and gets to 4.
+        report(1, 0);
+        report(1, 4);
+        // Respawned again, with a restart before its first report.
+        report(1, 1);
+        report(2, 5);
+        assert_eq!(state.stats.actors[&1].sim_restarts, 3 + 4 + 1);
+        assert_eq!(state.stats.actors[&2].sim_restarts, 5);
+        let view = state.view("run", "PointMaze-v0", 1.0);
+        assert_eq!(view.sim_worker_restarts, 13);
+        let rows: Vec<(u32, u64)> = view
+            .actors
+            .iter()
+            .map(|a| (a.actor_id, a.sim_restarts))
+            .collect();
+        assert_eq!(rows, [(1, 8), (2, 5)]);
+        // Snapshots written before the counter existed still load, with 0.
+        let old: ActorStats =
+            serde_json::from_str(r#"{"last_seen": 1.0, "env_steps": 10, "episodes": 2}"#).unwrap();
+        assert_eq!((old.sim_restarts, old.last_reported_sim_restarts), (0, 0));
+    }
 
     #[test]
     fn the_maze_view_spreads_snapshots_over_complete_evals_and_counts_cells() {

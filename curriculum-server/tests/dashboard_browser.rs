@@ -59,6 +59,8 @@ async fn chromium_renders_the_demo_bars() {
             actor_id: 2,
             actor_env_steps: 16,
             policy_env_steps: 0,
+            // One simulator worker restart, reported with every episode: counted once.
+            actor_sim_restarts: 1,
         };
         client.report(report).await.unwrap();
     }
@@ -118,10 +120,14 @@ async fn chromium_renders_the_demo_bars() {
     };
     let view: rfcl_curriculum::dashboard::DashboardView =
         serde_json::from_str(&get("api/state")).unwrap();
-    assert_eq!(view.episodes, 30);
+    assert_eq!((view.episodes, view.sim_worker_restarts), (30, 1));
     let metrics = get("metrics");
     assert!(
         metrics.contains("rfcl_curriculum_episodes_total 30"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("rfcl_curriculum_sim_worker_restarts_total 1"),
         "{metrics}"
     );
     assert!(metrics.contains("rfcl_curriculum_leases_granted_total 30"));

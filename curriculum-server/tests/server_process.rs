@@ -33,6 +33,7 @@ fn report_for(lease: &v1::ResetLease, success: bool, ret: f64) -> v1::EpisodeRep
         actor_id: 0,
         actor_env_steps: 0,
         policy_env_steps: 0,
+        actor_sim_restarts: 0,
     }
 }
 

@@ -589,7 +589,11 @@ fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, work: fn(J) -> T) -> Vec<T> {
             .collect();
         let mut out = vec![work(first)];
         for handle in others {
-            out.push(handle.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+            out.push(
+                handle
+                    .join()
+                    .unwrap_or_else(|e| std::panic::resume_unwind(e)),
+            );
         }
         out
     })

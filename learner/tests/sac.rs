@@ -385,7 +385,9 @@ fn member_threads_give_the_batched_updates() {
     let (batch, _) = minibatch(4 * 6, 91);
     let mut reference = agent(&cfg, 21);
     assert_eq!(reference.member_threads(), 1);
-    let expected: Vec<_> = (0..3).map(|_| reference.train_iteration(&batch).unwrap()).collect();
+    let expected: Vec<_> = (0..3)
+        .map(|_| reference.train_iteration(&batch).unwrap())
+        .collect();
     for threads in [2, 3, 4, 9] {
         let mut sharded = agent(&cfg, 21);
         sharded.set_member_threads(threads);
@@ -393,16 +395,30 @@ fn member_threads_give_the_batched_updates() {
         for want in &expected {
             let got = sharded.train_iteration(&batch).unwrap();
             for ((tag, a), (_, b)) in got.tagged().iter().zip(want.tagged().iter()) {
-                assert!((a - b).abs() < 1e-12, "{threads} threads, {tag}: {a} vs {b}");
+                assert!(
+                    (a - b).abs() < 1e-12,
+                    "{threads} threads, {tag}: {a} vs {b}"
+                );
             }
         }
         let (want, got) = (all_params(&reference), all_params(&sharded));
         for (name, w) in &want {
             let g = &got[name];
-            let diff = w.iter().zip(g).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
-            assert!(diff < 1e-12, "{threads} threads, {name}: max difference {diff}");
+            let diff = w
+                .iter()
+                .zip(g)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                diff < 1e-12,
+                "{threads} threads, {name}: max difference {diff}"
+            );
         }
-        for ((name, a), (_, b)) in reference.optimizers().iter().zip(sharded.optimizers().iter()) {
+        for ((name, a), (_, b)) in reference
+            .optimizers()
+            .iter()
+            .zip(sharded.optimizers().iter())
+        {
             for ((key, x), (_, y)) in a.state().iter().zip(b.state().iter()) {
                 let diff = (x - y).abs().max().double_value(&[]);
                 assert!(diff < 1e-12, "{threads} threads, {name} {key}: {diff}");

@@ -144,6 +144,7 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
                 actor_id: 9,
                 actor_env_steps: 0,
                 policy_env_steps: 0,
+                actor_sim_restarts: 0,
             })
             .await;
     }

@@ -181,6 +181,7 @@ impl From<EpisodeReport> for v1::EpisodeReport {
             actor_id: r.actor_id,
             actor_env_steps: r.actor_env_steps,
             policy_env_steps: r.policy_env_steps,
+            actor_sim_restarts: r.sim_restarts,
         }
     }
 }
@@ -227,6 +228,7 @@ impl TryFrom<v1::EpisodeReport> for EpisodeReport {
             actor_id: wire.actor_id,
             actor_env_steps: wire.actor_env_steps,
             policy_env_steps: wire.policy_env_steps,
+            sim_restarts: wire.actor_sim_restarts,
         })
     }
 }
@@ -417,8 +419,10 @@ mod tests {
             actor_id: 2,
             actor_env_steps: 1000,
             policy_env_steps: 800,
+            sim_restarts: 2,
         };
         let wire: v1::EpisodeReport = report.clone().into();
+        assert_eq!(wire.actor_sim_restarts, 2);
         assert_eq!(EpisodeReport::try_from(wire.clone()).unwrap(), report);
         let mut bad = wire.clone();
         bad.episode_return = f64::NAN;

@@ -166,6 +166,10 @@ pub struct Summary {
     pub expired_leases: u64,
     pub refused_reports: u64,
     pub actor_respawns: u64,
+    /// Simulator worker processes restarted after a crash or hang (the curriculum server's count
+    /// over all actors and their respawns); each replayed its episode, so nothing else shows it.
+    #[serde(default)]
+    pub sim_worker_restarts: u64,
     /// Transition records the learner took in per transport (its Health; the last session's
     /// learner process): same-host actors use shared memory, remote ones gRPC.
     #[serde(default)]
@@ -228,6 +232,7 @@ pub fn summarize(
         expired_leases: view.expired_leases,
         refused_reports: r.duplicate + r.expired + r.unknown + r.epoch_mismatch + r.malformed,
         actor_respawns: progress.actor_respawns,
+        sim_worker_restarts: view.sim_worker_restarts,
         transitions_shm: learner.shm_records,
         transitions_grpc: learner.grpc_records,
         evals: evals.evals(),
@@ -361,7 +366,7 @@ mod tests {
         let view: DashboardView = serde_json::from_value(serde_json::json!({
             "run_name": "r", "env_id": "PointMaze-v0", "stage": 2, "stage_epoch": 1,
             "env_steps": 2900, "stage_1_env_steps": 1500, "episodes": 100, "episodes_per_s": 1.0,
-            "open_leases": 3, "expired_leases": 4,
+            "open_leases": 3, "expired_leases": 4, "sim_worker_restarts": 2,
             "refused_reports": {"duplicate": 1, "expired": 2, "unknown": 0, "epoch_mismatch": 3, "malformed": 0},
             "solved_frac": 1.0, "demos": [], "levels": [], "actors": [], "evals": [],
             "history": [{"wall_s": 1.0, "env_steps": 2900, "stage": 2, "start_step_frac_avg": 0.0,
@@ -393,6 +398,7 @@ mod tests {
         assert_eq!((s.env_steps, s.updates, s.actor_respawns), (3100, 1550, 1));
         let json = serde_json::to_value(&s).unwrap();
         assert_eq!(json["ending"], "budget");
+        assert_eq!(json["sim_worker_restarts"], 2);
         assert_eq!(json["to_success"][1]["threshold"], 0.9);
     }
 

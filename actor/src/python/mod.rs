@@ -20,7 +20,8 @@
 //!   stderr, logged at error level), **restarted**, and the episode in flight is **replayed** on the
 //!   new worker: the same reset (seed, options, state), then the same actions; then the failed
 //!   call is tried once more. The actor never sees the crash unless it repeats; the count is
-//!   [`PythonEnv::restarts`]. The replayed physics runs in a fresh scene, so the continued episode
+//!   [`Env::restarts`], which the actor's episode reports carry to the curriculum dashboard and
+//!   the run's summary. The replayed physics runs in a fresh scene, so the continued episode
 //!   matches the lost one up to the simulator's warm-start caches, not bit for bit.
 //! * A crash that repeats during the retry is returned as [`EnvError::Simulator`]; the actor then
 //!   stops with that error, `rfcl train` respawns it and the curriculum server expires (and counts)
@@ -318,11 +319,6 @@ impl PythonEnv {
         self.call_deadline = deadline;
     }
 
-    /// Times the worker was restarted after a crash or a hang.
-    pub fn restarts(&self) -> u64 {
-        self.inner.borrow().restarts
-    }
-
     /// The current worker's pid (`None` between a failed restart and the next call).
     pub fn worker_pid(&self) -> Option<u32> {
         self.inner.borrow().worker.as_ref().map(WorkerProcess::pid)
@@ -579,5 +575,10 @@ impl Env for PythonEnv {
     fn get_state(&self) -> Vec<f32> {
         self.try_get_state()
             .unwrap_or_else(|e| panic!("PythonEnv::get_state: {e}"))
+    }
+
+    /// Times the worker was restarted after a crash or a hang.
+    fn restarts(&self) -> u64 {
+        self.inner.borrow().restarts
     }
 }

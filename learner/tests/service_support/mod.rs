@@ -193,6 +193,7 @@ impl Curriculum {
                     actor_id: 9,
                     actor_env_steps: 0,
                     policy_env_steps: 0,
+                    actor_sim_restarts: 0,
                 })
                 .await
                 .unwrap()

@@ -217,6 +217,7 @@ pub async fn run(
             given_up = counters.given_up.load(Ordering::Relaxed),
             unsent_partial_batch = unsent,
             abandoned_episodes = train.rollout.abandoned(),
+            sim_restarts = train.rollout.sim_restarts(),
             refused_reports = train.refused,
             flushed,
             "actor stopping"
