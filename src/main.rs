@@ -108,6 +108,9 @@ struct LearnerBenchArgs {
     /// Hidden layer widths of the actor and the critics (learner).
     #[arg(long, value_delimiter = ',', default_value = "256,256,256")]
     hidden: Vec<u32>,
+    /// Critic member shards with `members` parallelism (learner; default: 2 per thread).
+    #[arg(long)]
+    shards: Option<usize>,
     /// Critic ensemble size; the target minimum draws 2 from all of them (learner).
     #[arg(long, default_value_t = 10)]
     critics: u32,
@@ -335,6 +338,7 @@ fn bench_learner(seconds: f64, args: &LearnerBenchArgs) -> Result<()> {
             target_pool: args.critics,
             obs_dim,
             action_dim,
+            shards: args.shards,
             ..Default::default()
         };
         reports.push(rfcl_learner::bench::run(&cfg)?);

@@ -31,6 +31,9 @@ pub struct BenchConfig {
     /// [`crate::runtime::configure_cpu`] and [`Sac::set_member_threads`]).
     pub threads: i32,
     pub parallelism: Parallelism,
+    /// Critic member shards with `members` parallelism (`None`: the learner's default,
+    /// [`crate::sac::SHARDS_PER_THREAD`] per thread).
+    pub shards: Option<usize>,
     /// Untimed iterations before measuring, per schedule.
     pub warmup_iterations: u32,
     /// Timed windows per schedule; the best one is reported (the others are noise from whatever
@@ -57,6 +60,7 @@ impl Default for BenchConfig {
             matmul_precision: MatmulPrecision::Fp32,
             threads: 2,
             parallelism: Parallelism::Members,
+            shards: None,
             warmup_iterations: 1,
             windows: 3,
             window_seconds: 5.0,
@@ -118,6 +122,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
         ..NetworkConfig::default()
     };
     let mut results = Vec::new();
+    let mut shards_used = 1;
     for &(g, f) in &cfg.schedules {
         let sac_cfg = SacConfig {
             batch_size: cfg.batch_size,
@@ -130,7 +135,15 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             ..SacConfig::default()
         };
         let mut sac = Sac::new(cfg.obs_dim, cfg.action_dim, &sac_cfg, &net, cfg.seed)?;
-        sac.set_member_threads(member_threads as usize);
+        match cfg.shards {
+            Some(shards) => sac.set_member_parallelism(member_threads as usize, shards),
+            None => sac.set_member_threads(member_threads as usize),
+        }
+        shards_used = if sac.member_threads() > 1 {
+            sac.member_shards()
+        } else {
+            1
+        };
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let rows = (g * cfg.batch_size) as usize;
         for _ in 0..cfg.warmup_iterations {
@@ -189,8 +202,8 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
     Ok(BenchReport {
         config: cfg.clone(),
         device: format!(
-            "cpu, {} op threads x {member_threads} member threads, allocator tuned: {}",
-            runtime.threads, runtime.allocator_tuned
+            "cpu, {} op threads x {member_threads} member threads ({} shards), allocator tuned: {}",
+            runtime.threads, shards_used, runtime.allocator_tuned
         ),
         matmul_peak_gflop_per_s: peak,
         results,

@@ -93,6 +93,8 @@ pub struct Sac {
     /// Threads that run the critic ensemble's members in parallel (1 = one batched computation on
     /// the calling thread); see [`Sac::set_member_threads`].
     member_threads: usize,
+    /// Shards the members are split into when `member_threads > 1`.
+    member_shards: usize,
 }
 
 impl Sac {
@@ -200,26 +202,40 @@ impl Sac {
             polyak_pairs,
             rng,
             member_threads: 1,
+            member_shards: 1,
         })
     }
 
-    /// Runs the critic ensemble's members on `threads` threads (at most one per member, each with
-    /// single-threaded libtorch ops): every critic and actor update splits the members into
-    /// contiguous shards, one per thread, and joins their gradients. The maths are those of the
-    /// single batched computation (same losses, same gradients up to float summation order, same
-    /// RNG draws); only the work is spread. On a CPU this uses cores that libtorch's per-op
-    /// threading leaves idle for networks of RFCL's size (benches/RESULTS.md). CUDA ignores it.
+    /// Runs the critic ensemble's members on `threads` threads (each with single-threaded libtorch
+    /// ops): every critic and actor update splits the members into contiguous shards,
+    /// [`SHARDS_PER_THREAD`] per thread (at most one per member), which the threads take from a
+    /// shared queue until none is left; then their gradients are joined. The maths are those of the single batched computation
+    /// (same losses, same gradients up to float summation order, same RNG draws); only the work
+    /// is spread. On a CPU this uses cores that libtorch's per-op threading leaves idle for
+    /// networks of RFCL's size (benches/RESULTS.md). CUDA ignores it.
     pub fn set_member_threads(&mut self, threads: usize) {
+        self.set_member_parallelism(threads, threads.saturating_mul(SHARDS_PER_THREAD));
+    }
+
+    /// [`Sac::set_member_threads`] with an explicit shard count (clamped to 1..=members; at
+    /// least one shard per thread), for benchmarks.
+    pub fn set_member_parallelism(&mut self, threads: usize, shards: usize) {
         let members = self.critic.members() as usize;
         self.member_threads = match self.device {
             Device::Cpu => threads.clamp(1, members),
             _ => 1,
         };
+        self.member_shards = shards.clamp(self.member_threads, members);
     }
 
     /// See [`Sac::set_member_threads`].
     pub fn member_threads(&self) -> usize {
         self.member_threads
+    }
+
+    /// See [`Sac::set_member_parallelism`].
+    pub fn member_shards(&self) -> usize {
+        self.member_shards
     }
 
     /// One training iteration (spec 5.2) on a prepared batch of G·B rows, already interleaved
@@ -340,7 +356,7 @@ impl Sac {
         target: &Tensor,
     ) -> (CriticStep, Vec<Tensor>) {
         let members = self.critic.members();
-        let jobs: Vec<CriticShardJob> = shard_ranges(members, self.member_threads)
+        let jobs: Vec<CriticShardJob> = shard_ranges(members, self.member_shards)
             .into_iter()
             .map(|(start, len)| CriticShardJob {
                 shard: self.critic.shard(start, len, true),
@@ -350,7 +366,7 @@ impl Sac {
                 target: target.shallow_clone(),
             })
             .collect();
-        let parts = run_on_threads(jobs, CriticShardJob::run);
+        let parts = run_on_threads(jobs, self.member_threads, CriticShardJob::run);
         let loss = Tensor::stack(&parts.iter().map(|p| &p.loss).collect::<Vec<_>>(), 0).sum(None);
         let q_sum = Tensor::stack(&parts.iter().map(|p| &p.q_sum).collect::<Vec<_>>(), 0).sum(None);
         let params = parts[0].grads.len();
@@ -387,7 +403,7 @@ impl Sac {
     fn actor_loss_sharded(&self, obs: &Tensor, noise: &Tensor) -> (Tensor, Tensor, Tensor) {
         let pi = self.actor.sample(obs, noise);
         let members = self.critic.members();
-        let jobs: Vec<ActorShardJob> = shard_ranges(members, self.member_threads)
+        let jobs: Vec<ActorShardJob> = shard_ranges(members, self.member_shards)
             .into_iter()
             .map(|(start, len)| ActorShardJob {
                 shard: self.critic.shard(start, len, false),
@@ -395,7 +411,7 @@ impl Sac {
                 action: pi.action.detach().set_requires_grad(true),
             })
             .collect();
-        let parts = run_on_threads(jobs, ActorShardJob::run);
+        let parts = run_on_threads(jobs, self.member_threads, ActorShardJob::run);
         let sum = |ts: Vec<&Tensor>| Tensor::stack(&ts, 0).sum_dim_intlist(0, false, None);
         let q_mean = sum(parts.iter().map(|p| &p.q_sum).collect()) / members as f64;
         let grad_mean = sum(parts.iter().map(|p| &p.action_grad).collect()) / members as f64;
@@ -571,32 +587,53 @@ pub fn shard_ranges(members: i64, shards: usize) -> Vec<(i64, i64)> {
         .collect()
 }
 
-/// Runs `work` on every job, the first on the calling thread and each other on a scoped thread of
-/// its own with single-threaded libtorch ops; results in job order. A panic in a job is re-raised.
-fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, work: fn(J) -> T) -> Vec<T> {
-    let mut jobs = jobs.into_iter();
-    let Some(first) = jobs.next() else {
-        return Vec::new();
+/// Shards per member thread (see [`Sac::set_member_threads`]). One: on the 2-core machine with a
+/// MetaWorld run's actors beside the learner, two shards per thread (finer work, balanced by the
+/// queue) were no faster (54-62 critic updates/s; one shard per thread 54-70 in the same run).
+pub const SHARDS_PER_THREAD: usize = 1;
+
+/// Runs `work` on every job with `threads` threads, the calling one and `threads − 1` scoped
+/// threads with single-threaded libtorch ops, each taking the next job from a shared queue until
+/// none is left; results in job order, whoever ran them. A panic in a job is re-raised.
+fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, threads: usize, work: fn(J) -> T) -> Vec<T> {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Mutex;
+    let count = jobs.len();
+    let queue: Vec<Mutex<Option<J>>> = jobs.into_iter().map(|j| Mutex::new(Some(j))).collect();
+    let results: Vec<Mutex<Option<T>>> = (0..count).map(|_| Mutex::new(None)).collect();
+    let next = AtomicUsize::new(0);
+    let drain = || loop {
+        let i = next.fetch_add(1, Ordering::Relaxed);
+        if i >= count {
+            break;
+        }
+        let job = queue[i]
+            .lock()
+            .expect("job slot")
+            .take()
+            .expect("each job taken once");
+        *results[i].lock().expect("result slot") = Some(work(job));
     };
     std::thread::scope(|scope| {
-        let others: Vec<_> = jobs
-            .map(|job| {
-                scope.spawn(move || {
+        let helpers: Vec<_> = (1..threads.min(count))
+            .map(|_| {
+                scope.spawn(|| {
                     tch::set_num_threads(1);
-                    work(job)
+                    drain()
                 })
             })
             .collect();
-        let mut out = vec![work(first)];
-        for handle in others {
-            out.push(
-                handle
-                    .join()
-                    .unwrap_or_else(|e| std::panic::resume_unwind(e)),
-            );
+        drain();
+        for helper in helpers {
+            helper
+                .join()
+                .unwrap_or_else(|e| std::panic::resume_unwind(e));
         }
-        out
-    })
+    });
+    results
+        .into_iter()
+        .map(|r| r.into_inner().expect("result slot").expect("every job ran"))
+        .collect()
 }
 
 /// One shard's share of a critic update (see `Sac::critic_gradients_sharded`).

@@ -377,7 +377,7 @@ fn train_iteration_follows_the_schedule_of_spec_5_2() {
 }
 
 /// The member-parallel updates (`set_member_threads`) compute the batched updates' maths: after
-/// several training iterations with 4 critics on 1, 2, 3 and 4 threads (shards of 4, 2+2, 2+1+1,
+/// several training iterations with 4 critics on 1-4 threads and 2-4 shards (2+2, 2+1+1,
 /// 1+1+1+1 members), every parameter, optimiser state and metric agrees to float rounding.
 #[test]
 fn member_threads_give_the_batched_updates() {
@@ -388,9 +388,15 @@ fn member_threads_give_the_batched_updates() {
     let expected: Vec<_> = (0..3)
         .map(|_| reference.train_iteration(&batch).unwrap())
         .collect();
-    for threads in [2, 3, 4, 9] {
+    // (threads, shards): one shard per thread, the default shards per thread, more shards than
+    // threads, and more threads than members.
+    for (threads, shards) in [(2, 2), (2, 0), (3, 3), (2, 3), (4, 4), (9, 9)] {
         let mut sharded = agent(&cfg, 21);
-        sharded.set_member_threads(threads);
+        if shards == 0 {
+            sharded.set_member_threads(threads);
+        } else {
+            sharded.set_member_parallelism(threads, shards);
+        }
         assert_eq!(sharded.member_threads(), threads.min(4));
         for want in &expected {
             let got = sharded.train_iteration(&batch).unwrap();
