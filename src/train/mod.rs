@@ -44,6 +44,8 @@ use progress::{
 const READY_TIMEOUT: Duration = Duration::from_secs(180);
 const POLL_EVERY: Duration = Duration::from_millis(500);
 const STATE_EVERY: u32 = 4;
+/// Ticks between saves of the session's wall time: a killed session loses at most 30 s of it.
+const PROGRESS_EVERY: u32 = 60;
 /// Grace periods between SIGTERM and SIGKILL.
 const ACTOR_GRACE: Duration = Duration::from_secs(5);
 const LEARNER_GRACE: Duration = Duration::from_secs(120);
@@ -139,7 +141,7 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
     } else {
         RunProgress::default()
     };
-    progress.sessions += 1;
+    progress.begin_session();
     let learner_threads = cfg.learner.threads_here(args.learner_threads);
     if learner_threads == 0 {
         bail!("--learner-threads must be at least 1");
@@ -504,6 +506,11 @@ impl Session {
                     return Ok(Ending::EvalSuccess);
                 }
             }
+            if ticks % PROGRESS_EVERY == 0 {
+                if let Err(e) = self.save_progress(false) {
+                    self.bar.println(format!("warning: {e:#}"));
+                }
+            }
             self.draw();
             if self.actors.iter().filter(|a| !a.eval).all(|a| a.done) {
                 self.bar
@@ -598,16 +605,22 @@ impl Session {
         for eval in self.evals.update(&view.evals, wall) {
             self.bar.println(format_eval(&eval));
             self.prep.progress.evals.push(eval);
-            if let Err(e) = self.save_progress(0.0) {
+            if let Err(e) = self.save_progress(false) {
                 self.bar.println(format!("warning: {e:#}"));
             }
         }
         self.last_view = Some(view);
     }
 
-    fn save_progress(&self, add_session_s: f64) -> Result<()> {
-        let mut p = self.prep.progress.clone();
-        p.earlier_sessions_s += add_session_s;
+    /// `RUN_DIR/train_progress.json`, with this session's wall time so far (`ended` = false) or
+    /// folded into the earlier sessions' (`ended` = true).
+    fn save_progress(&self, ended: bool) -> Result<()> {
+        let session_s = self.started.elapsed().as_secs_f64();
+        let p = if ended {
+            self.prep.progress.after_session(session_s)
+        } else {
+            self.prep.progress.during_session(session_s)
+        };
         write_json(&self.prep.run_dir.join(PROGRESS_FILE), &p)
     }
 
@@ -648,9 +661,8 @@ impl Session {
         }
         self.server.stop(SERVER_GRACE).await;
         let _ = std::fs::remove_file(self.prep.run_dir.join("processes.json"));
-        let session_s = self.started.elapsed().as_secs_f64();
         let wall = self.wall_s();
-        self.save_progress(session_s)?;
+        self.save_progress(true)?;
         let ending = ending?;
         let Some(view) = self.last_view.as_ref() else {
             bail!("the curriculum server never answered GetState: no summary");

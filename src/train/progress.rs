@@ -33,9 +33,39 @@ pub struct CompleteEval {
 pub struct RunProgress {
     /// Wall seconds of the sessions before this one.
     pub earlier_sessions_s: f64,
+    /// Wall seconds of the current session as of its last save. A session that ends cleanly folds
+    /// them into `earlier_sessions_s`; one that was killed (SIGKILL, a machine restart) leaves
+    /// them here and the next session folds them in, so its time is not lost.
+    #[serde(default)]
+    pub session_s: f64,
     pub sessions: u32,
     pub evals: Vec<CompleteEval>,
     pub actor_respawns: u64,
+}
+
+impl RunProgress {
+    /// Starts a session: counts it and takes in the time a killed session left behind.
+    pub fn begin_session(&mut self) {
+        self.earlier_sessions_s += std::mem::take(&mut self.session_s);
+        self.sessions += 1;
+    }
+
+    /// What to save while the session runs, `session_s` into it.
+    pub fn during_session(&self, session_s: f64) -> RunProgress {
+        RunProgress {
+            session_s,
+            ..self.clone()
+        }
+    }
+
+    /// What to save when the session ends cleanly after `session_s`.
+    pub fn after_session(&self, session_s: f64) -> RunProgress {
+        RunProgress {
+            earlier_sessions_s: self.earlier_sessions_s + session_s,
+            session_s: 0.0,
+            ..self.clone()
+        }
+    }
 }
 
 /// Tracks evaluations as the curriculum server aggregates them.
@@ -350,6 +380,34 @@ mod tests {
         let mut t = EvalTracker::new(10, &earlier);
         assert!(t.update(&[point(2, 2000, 10, 0.95)], 100.0).is_empty());
         assert_eq!(t.first_reaching(0.9).unwrap().wall_s, 42.0);
+    }
+
+    #[test]
+    fn a_killed_sessions_wall_time_is_kept_for_the_next() {
+        let mut p = RunProgress::default();
+        p.begin_session();
+        // A clean session of 100 s, then one killed 40 s in (its last save said 30 s).
+        let mut p: RunProgress = p.after_session(100.0);
+        p.begin_session();
+        let saved = p.during_session(30.0);
+        assert_eq!((saved.earlier_sessions_s, saved.session_s), (100.0, 30.0));
+        let mut resumed: RunProgress =
+            serde_json::from_str(&serde_json::to_string(&saved).unwrap()).unwrap();
+        resumed.begin_session();
+        assert_eq!(
+            (
+                resumed.earlier_sessions_s,
+                resumed.session_s,
+                resumed.sessions
+            ),
+            (130.0, 0.0, 3)
+        );
+        // Files written before the field existed still read.
+        let old: RunProgress = serde_json::from_str(
+            r#"{"earlier_sessions_s": 5.0, "sessions": 1, "evals": [], "actor_respawns": 0}"#,
+        )
+        .unwrap();
+        assert_eq!(old.session_s, 0.0);
     }
 
     #[test]
