@@ -128,6 +128,22 @@ impl EvalTracker {
         })
     }
 
+    /// Wilson 95 % interval of the success-at-end rate over the episodes of the last
+    /// [`STOP_WINDOW`] complete evals pooled, once there are that many: how far the stop rule's
+    /// mean may be from the policy's own success rate (10-episode evals are noisy).
+    pub fn running_interval(&self) -> Option<[f64; 2]> {
+        let evals = self.evals();
+        (evals.len() >= STOP_WINDOW).then(|| {
+            let window = &evals[evals.len() - STOP_WINDOW..];
+            let episodes: u64 = window.iter().map(|e| e.episodes).sum();
+            let successes: f64 = window
+                .iter()
+                .map(|e| e.success_at_end * e.episodes as f64)
+                .sum();
+            wilson_interval(successes, episodes, Z_95)
+        })
+    }
+
     /// Whether the run reached `service.stop_at_eval_success`.
     pub fn reached(&self, stop_at: Option<f64>) -> bool {
         match (stop_at, self.running_mean()) {
@@ -146,6 +162,23 @@ impl EvalTracker {
     pub fn last(&self) -> Option<CompleteEval> {
         self.evals().pop()
     }
+}
+
+/// The standard normal quantile of a two-sided 95 % interval.
+const Z_95: f64 = 1.959_963_985;
+
+/// Wilson score interval of a binomial rate: `successes` of `n` trials, normal quantile `z`.
+/// Unlike the normal approximation it stays inside [0, 1] and is sound near 0 % and 100 %.
+pub fn wilson_interval(successes: f64, n: u64, z: f64) -> [f64; 2] {
+    if n == 0 {
+        return [0.0, 1.0];
+    }
+    let n = n as f64;
+    let p = successes / n;
+    let z2n = z * z / n;
+    let center = (p + z2n / 2.0) / (1.0 + z2n);
+    let half = z / (1.0 + z2n) * (p * (1.0 - p) / n + z2n / (4.0 * n)).sqrt();
+    [(center - half).max(0.0), (center + half).min(1.0)]
 }
 
 /// When the run reached a success threshold.
@@ -188,6 +221,9 @@ pub struct Summary {
     pub to_success: Vec<Milestone>,
     pub final_eval: Option<CompleteEval>,
     pub eval_success_mean_last_5: Option<f64>,
+    /// Wilson 95 % interval over the last 5 evals' episodes pooled.
+    #[serde(default)]
+    pub eval_success_last_5_ci95: Option<[f64; 2]>,
     /// Success at the end of the last 100 training episodes.
     pub train_success_rate: Option<f64>,
     /// The curriculum server's counters: train episodes and their env steps, leases.
@@ -256,6 +292,7 @@ pub fn summarize(
         to_success,
         final_eval: evals.last(),
         eval_success_mean_last_5: evals.running_mean(),
+        eval_success_last_5_ci95: evals.running_interval(),
         train_success_rate: view.history.last().map(|p| p.train_success_rate),
         curriculum_episodes: view.episodes,
         curriculum_env_steps: view.env_steps,
@@ -380,6 +417,36 @@ mod tests {
         let mut t = EvalTracker::new(10, &earlier);
         assert!(t.update(&[point(2, 2000, 10, 0.95)], 100.0).is_empty());
         assert_eq!(t.first_reaching(0.9).unwrap().wall_s, 42.0);
+    }
+
+    #[test]
+    fn wilson_interval_matches_a_hand_computed_case() {
+        // 46 of 50 at z = 1.96: p = 0.92, z²/n = 0.076832, centre 0.958416 / 1.076832 = 0.890033,
+        // half-width 1.96 / 1.076832 * sqrt(0.92 * 0.08 / 50 + 0.076832 / 200) = 0.078418.
+        let [lo, hi] = wilson_interval(46.0, 50, 1.96);
+        assert!((lo - 0.811615).abs() < 1e-6, "{lo}");
+        assert!((hi - 0.968451).abs() < 1e-6, "{hi}");
+        // All successes: the upper end is 1, the lower n / (n + z²).
+        let [lo, hi] = wilson_interval(10.0, 10, 1.96);
+        assert!((lo - 10.0 / 13.8416).abs() < 1e-12 && hi == 1.0);
+        assert_eq!(wilson_interval(0.0, 0, 1.96), [0.0, 1.0]);
+    }
+
+    #[test]
+    fn the_running_interval_pools_the_last_five_evals_episodes() {
+        let mut t = EvalTracker::new(10, &[]);
+        let points: Vec<EvalPoint> = [0.0, 0.8, 1.0, 1.0, 0.8, 1.0]
+            .iter()
+            .enumerate()
+            .map(|(i, &s)| point(i as u64 + 1, 1000 * (i as u64 + 1), 10, s))
+            .collect();
+        t.update(&points, 1.0);
+        // The last five: 46 of 50.
+        let [lo, hi] = t.running_interval().unwrap();
+        let [elo, ehi] = wilson_interval(46.0, 50, Z_95);
+        assert!((lo - elo).abs() < 1e-12 && (hi - ehi).abs() < 1e-12);
+        assert!(lo < 0.92 && 0.92 < hi);
+        assert!(EvalTracker::new(10, &[]).running_interval().is_none());
     }
 
     #[test]

@@ -296,6 +296,16 @@ pub fn assert_reached(summary: &Value, bar: f64) {
     assert_eq!(summary["ending"], "eval_success", "{summary:#}");
     let mean = summary["eval_success_mean_last_5"].as_f64().unwrap();
     assert!(mean >= bar, "mean of the last 5 evals {mean} < {bar}");
+    let ci: Vec<f64> = summary["eval_success_last_5_ci95"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no eval_success_last_5_ci95 in {summary:#}"))
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert!(
+        ci[0] <= mean && mean <= ci[1] && ci[1] <= 1.0,
+        "{ci:?} around {mean}"
+    );
     let evals = summary["evals"].as_array().unwrap();
     assert!(evals.len() >= 5, "{summary:#}");
     for e in evals {
