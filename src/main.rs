@@ -108,7 +108,7 @@ struct LearnerBenchArgs {
     /// Hidden layer widths of the actor and the critics (learner).
     #[arg(long, value_delimiter = ',', default_value = "256,256,256")]
     hidden: Vec<u32>,
-    /// Critic member shards with `members` parallelism (learner; default: 2 per thread).
+    /// Critic member shards with `members` parallelism (learner; default: one per thread).
     #[arg(long)]
     shards: Option<usize>,
     /// Critic ensemble size; the target minimum draws 2 from all of them (learner).

@@ -713,9 +713,10 @@ mod tests {
         assert_eq!(report.episode_return, 1.0);
     }
 
-    #[test]
-    fn envs_finish_independently_and_heartbeat_counts_all_envs() {
-        let mut r = Rollout::new(vec![Line::boxed(), Line::boxed()], 1, settings(false));
+    /// A [`Line`] env and `second` on episodes of 2 and 3 steps, after two steps: env 0's
+    /// episode has just finished, env 1's has a step to go.
+    fn two_episodes_two_steps_in(second: Box<dyn Env>) -> (Rollout, StepOutput) {
+        let mut r = Rollout::new(vec![Line::boxed(), second], 1, settings(false));
         r.begin(0, lease(1, LeaseKind::DemoState, vec![0.0], 2, 1))
             .unwrap();
         r.begin(1, lease(2, LeaseKind::DemoState, vec![0.0], 3, 1))
@@ -723,6 +724,12 @@ mod tests {
         let mut out = StepOutput::default();
         r.step(None, &mut out).unwrap();
         r.step(None, &mut out).unwrap();
+        (r, out)
+    }
+
+    #[test]
+    fn envs_finish_independently_and_heartbeat_counts_all_envs() {
+        let (mut r, mut out) = two_episodes_two_steps_in(Line::boxed());
         assert_eq!(out.finished.len(), 1);
         assert_eq!(out.finished[0].0, 0);
         // The heartbeat counts the steps taken so far: env 0's second step is the third.
@@ -738,14 +745,7 @@ mod tests {
 
     #[test]
     fn reports_carry_the_worker_restarts_of_all_envs() {
-        let mut r = Rollout::new(vec![Line::boxed(), Line::restarting()], 1, settings(false));
-        r.begin(0, lease(1, LeaseKind::DemoState, vec![0.0], 2, 1))
-            .unwrap();
-        r.begin(1, lease(2, LeaseKind::DemoState, vec![0.0], 3, 1))
-            .unwrap();
-        let mut out = StepOutput::default();
-        r.step(None, &mut out).unwrap();
-        r.step(None, &mut out).unwrap();
+        let (mut r, mut out) = two_episodes_two_steps_in(Line::restarting());
         // Env 0 never restarts; its report counts env 1's restarts, including the one of the
         // step in which env 0 finished.
         assert_eq!(out.finished[0].1.sim_restarts, 2);

@@ -209,9 +209,9 @@ impl Sac {
     /// Runs the critic ensemble's members on `threads` threads (each with single-threaded libtorch
     /// ops): every critic and actor update splits the members into contiguous shards,
     /// [`SHARDS_PER_THREAD`] per thread (at most one per member), which the threads take from a
-    /// shared queue until none is left; then their gradients are joined. The maths are those of the single batched computation
-    /// (same losses, same gradients up to float summation order, same RNG draws); only the work
-    /// is spread. On a CPU this uses cores that libtorch's per-op threading leaves idle for
+    /// shared queue until none is left; then their gradients are joined. The maths are those of
+    /// the single batched computation (same losses, same gradients up to float summation order,
+    /// same RNG draws); only the work is spread. On a CPU this uses cores that libtorch's per-op threading leaves idle for
     /// networks of RFCL's size (benches/RESULTS.md). CUDA ignores it.
     pub fn set_member_threads(&mut self, threads: usize) {
         self.set_member_parallelism(threads, threads.saturating_mul(SHARDS_PER_THREAD));

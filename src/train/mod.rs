@@ -506,7 +506,7 @@ impl Session {
                     return Ok(Ending::EvalSuccess);
                 }
             }
-            if ticks % PROGRESS_EVERY == 0 {
+            if ticks.is_multiple_of(PROGRESS_EVERY) {
                 if let Err(e) = self.save_progress(false) {
                     self.bar.println(format!("warning: {e:#}"));
                 }
@@ -601,15 +601,24 @@ impl Session {
         let Some(view) = self.fetch_state().await else {
             return;
         };
-        let wall = self.wall_s();
-        for eval in self.evals.update(&view.evals, wall) {
-            self.bar.println(format_eval(&eval));
-            self.prep.progress.evals.push(eval);
+        if self.take_view(view) {
             if let Err(e) = self.save_progress(false) {
                 self.bar.println(format!("warning: {e:#}"));
             }
         }
+    }
+
+    /// Keeps the curriculum server's latest state and prints and records the evals it completes;
+    /// true if there were any.
+    fn take_view(&mut self, view: DashboardView) -> bool {
+        let fresh = self.evals.update(&view.evals, self.wall_s());
+        let any = !fresh.is_empty();
+        for eval in fresh {
+            self.bar.println(format_eval(&eval));
+            self.prep.progress.evals.push(eval);
+        }
         self.last_view = Some(view);
+        any
     }
 
     /// `RUN_DIR/train_progress.json`, with this session's wall time so far (`ended` = false) or
@@ -642,12 +651,7 @@ impl Session {
     /// curriculum's final state, then writes the summary.
     async fn finish(mut self, ending: Result<Ending>) -> Result<Summary> {
         if let Some(view) = self.fetch_state().await {
-            let wall = self.wall_s();
-            for eval in self.evals.update(&view.evals, wall) {
-                self.bar.println(format_eval(&eval));
-                self.prep.progress.evals.push(eval);
-            }
-            self.last_view = Some(view);
+            self.take_view(view);
         }
         self.poll_health().await;
         self.bar.finish();
