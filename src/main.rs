@@ -17,6 +17,7 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
+use rfcl_proto::auth::{self, ClientAuth, Token};
 
 #[derive(Parser)]
 #[command(
@@ -379,8 +380,9 @@ fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Re
         .enable_all()
         .build()?;
     if let Some(addr) = connect {
+        let auth = ClientAuth::from_env().context("calling the curriculum server")?;
         let result = rt.block_on(rfcl_curriculum::bench::acquire_report(
-            &addr, clients, duration,
+            &addr, &auth, clients, duration,
         ))?;
         println!(
             "{}",
@@ -397,6 +399,7 @@ fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Re
     // Snapshots as in a run; leases never expire during the bench.
     std::fs::write(&config, "name: bench\nenv:\n  suite: pointmaze\n  env_id: PointMaze-v0\nservice:\n  lease_timeout_s: 600\n")?;
     let server_bin = std::env::current_exe()?.with_file_name("curriculum-server");
+    let token = Token::random();
     let mut child = Command::new(&server_bin)
         .args([
             "--demos",
@@ -407,6 +410,8 @@ fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Re
         ])
         .arg(dir.path().join("run"))
         .env("RUST_LOG", "warn")
+        .env(auth::TOKEN_ENV, token.expose())
+        .env_remove(auth::TOKEN_FILE_ENV)
         .stdout(Stdio::piped())
         .spawn()
         .with_context(|| format!("starting {}", server_bin.display()))?;
@@ -421,8 +426,9 @@ fn bench_curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Re
         let _ = child.kill();
         bail!("curriculum-server did not start: {line:?}");
     };
+    let auth = ClientAuth::plain(token);
     let result = rt.block_on(rfcl_curriculum::bench::acquire_report(
-        &addr, clients, duration,
+        &addr, &auth, clients, duration,
     ));
     let _ = child.kill();
     let _ = child.wait();

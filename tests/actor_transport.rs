@@ -31,6 +31,7 @@ impl Drop for Proc {
 fn start_service(name: &str, args: &[&str], log: &Path, field: &str) -> (Proc, String) {
     let mut child = Command::new(binary(name))
         .args(args)
+        .env("RFCL_TOKEN", TEST_TOKEN)
         .env("OMP_WAIT_POLICY", "PASSIVE")
         .stdout(Stdio::piped())
         .stderr(std::fs::File::create(log).unwrap())
@@ -110,6 +111,7 @@ fn start_actor(s: &Services, transport: &str, log: &Path) -> Proc {
             .args(["--connect", s.processes["learner"].as_str().unwrap()])
             .args(["--envs", "2", "--id", "0", "--retry-for", "10"])
             .args(["--transport", transport])
+            .env("RFCL_TOKEN", TEST_TOKEN)
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(log).unwrap())
             .spawn()

@@ -21,10 +21,12 @@ use std::time::{Duration, Instant};
 use rfcl_actor::pointmaze::demos::{demo_set, generate_demos};
 use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
 use rfcl_core::transition::{RecordLayout, Transition};
+use rfcl_proto::auth::{authenticated, Guard, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_server::{Learner, LearnerServer};
 use tokio::sync::watch;
+use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
 /// HDF5 opens files without O_CLOEXEC and holds a flock: no child may be forked while a demo file
@@ -72,6 +74,13 @@ fn write_run(dir: &Path, extra: &str) -> (PathBuf, PathBuf, RunConfig) {
     (config, demos, cfg)
 }
 
+/// The run token of the test services.
+const TEST_TOKEN: &str = "actor-test-token-0123456";
+
+fn test_token() -> Token {
+    Token::parse(TEST_TOKEN, "the tests").unwrap()
+}
+
 struct Server {
     child: Child,
     grpc: String,
@@ -87,6 +96,8 @@ impl Server {
             .arg(demos)
             .arg("--run-dir")
             .arg(run_dir)
+            .env("RFCL_TOKEN", TEST_TOKEN)
+            .env_remove("RFCL_TOKEN_FILE")
             .env("RUST_LOG", "warn")
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
@@ -107,9 +118,12 @@ impl Server {
     }
 
     async fn state(&self) -> serde_json::Value {
-        let mut c = CurriculumClient::connect(format!("http://{}", self.grpc))
+        let channel = tonic::transport::Channel::from_shared(format!("http://{}", self.grpc))
+            .unwrap()
+            .connect()
             .await
             .unwrap();
+        let mut c = CurriculumClient::new(authenticated(channel, &test_token()));
         let json = c
             .get_state(v1::GetStateRequest {})
             .await
@@ -266,7 +280,10 @@ impl LearnerHandle {
             rt.spawn(async move {
                 let listener = tokio::net::TcpListener::from_std(listener).unwrap();
                 tonic::transport::Server::builder()
-                    .add_service(LearnerServer::new(double))
+                    .add_service(InterceptedService::new(
+                        LearnerServer::new(double),
+                        Guard::new(&test_token()),
+                    ))
                     .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener))
                     .await
             });
@@ -312,6 +329,8 @@ fn start_actor(learner: &str, extra: &[&str]) -> Child {
     Command::new(env!("CARGO_BIN_EXE_actor"))
         .args(["--connect", learner, "--retry-for", "3"])
         .args(extra)
+        .env("RFCL_TOKEN", TEST_TOKEN)
+        .env_remove("RFCL_TOKEN_FILE")
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(Stdio::piped())

@@ -4,6 +4,7 @@ use std::time::{Duration, Instant};
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rfcl_proto::auth::ClientAuth;
 use rfcl_proto::v1::{self, curriculum_client::CurriculumClient};
 use serde::Serialize;
 
@@ -27,12 +28,14 @@ pub struct AcquireReportResult {
 /// and followed by a plain Acquire. Latency is that of one Report + Acquire pair.
 pub async fn acquire_report(
     addr: &str,
+    auth: &ClientAuth,
     clients: usize,
     duration: Duration,
 ) -> anyhow::Result<AcquireReportResult> {
     let mut conns = Vec::with_capacity(clients);
     for _ in 0..clients {
-        conns.push(CurriculumClient::connect(addr.to_string()).await?);
+        let endpoint = auth.endpoint(tonic::transport::Endpoint::from_shared(addr.to_string())?)?;
+        conns.push(CurriculumClient::new(auth.wrap(endpoint.connect().await?)));
     }
     let start = Instant::now();
     let deadline = start + duration;

@@ -27,6 +27,9 @@ pub struct DashboardView {
     #[serde(default)]
     pub sim_worker_restarts: u64,
     pub refused_reports: RefusedReports,
+    /// Calls refused UNAUTHENTICATED (no run token or a wrong one) since the server started.
+    #[serde(default)]
+    pub unauthenticated_calls: u64,
     pub solved_frac: f64,
     pub demos: Vec<DemoBar>,
     pub levels: Vec<LevelRow>,
@@ -421,7 +424,8 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 <span>episodes {episodes} ({eps:.1}/s)</span><span>open leases {open}</span><span>expired leases {expired}</span>
 <span>sim worker restarts {restarts}</span>
 <span>demos solved {solved:.0}%</span></p>
-<p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}</span></p>
+<p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}</span>
+<span>unauthenticated calls {unauth}</span></p>
 "#,
         name = esc(&view.run_name),
         env = esc(&view.env_id),
@@ -439,6 +443,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         unk = view.refused_reports.unknown,
         epm = view.refused_reports.epoch_mismatch,
         mal = view.refused_reports.malformed,
+        unauth = view.unauthenticated_calls,
     );
     if let Some(s1) = view.stage_1_env_steps {
         let _ = writeln!(h, "<p>stage 1 ended after <b>{s1}</b> env steps</p>");
@@ -575,6 +580,12 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         "leases_expired",
         "Leases that expired unreported",
         view.expired_leases,
+    );
+    counter(
+        &mut r,
+        "unauthenticated_calls",
+        "gRPC calls refused for a missing or wrong run token",
+        view.unauthenticated_calls,
     );
     counter(
         &mut r,

@@ -10,6 +10,7 @@ use rfcl_core::demo::DemoSet;
 use rfcl_curriculum::server::{serve, Bound};
 use rfcl_curriculum::service::{demo_metas, unix_now, DemoResets, ServerState, Shared};
 use rfcl_curriculum::{snapshot, Curriculum};
+use rfcl_proto::auth::ServerAuth;
 
 #[derive(Parser)]
 #[command(
@@ -33,7 +34,8 @@ struct Args {
     /// Run config (YAML).
     #[arg(long)]
     config: PathBuf,
-    /// Directory for snapshots; default runs/<name>.
+    /// Directory for snapshots; default runs/<name>. When it holds a snapshot, the server
+    /// continues from it.
     #[arg(long, value_name = "RUN_DIR")]
     run_dir: Option<PathBuf>,
     /// Continue the curriculum from the snapshot in this run directory.
@@ -68,6 +70,9 @@ fn main() -> ExitCode {
 }
 
 async fn run(args: Args) -> Result<()> {
+    // Every call needs the run's token (and TLS when configured): checked before anything else so
+    // a missing token fails at once.
+    let auth = ServerAuth::from_env().context("the curriculum server's gRPC service")?;
     let cfg = rfcl_core::config::resolve_file(&args.config, &args.overrides)?;
     let demo_path = match (&args.demos, &cfg.train.dataset_path) {
         (Some(p), _) => p.clone(),
@@ -95,20 +100,28 @@ async fn run(args: Args) -> Result<()> {
         .unwrap_or_else(|| PathBuf::from("runs").join(&cfg.name));
     std::fs::create_dir_all(&run_dir)
         .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
-    let state = match &args.resume {
-        Some(dir) => {
-            let state = snapshot::load(&snapshot::snapshot_path(dir), &cfg.name)?;
-            tracing::info!(
-                reports = state.stats.episodes,
-                "resumed the curriculum from {}",
-                dir.display()
-            );
-            state
-        }
-        None => ServerState::new(Curriculum::new(&cfg, &demo_metas(&demos))?, unix_now()),
+    // A server that finds its own snapshot in its run directory continues it (a restarted
+    // container, a supervisor's restart): the run goes on without anyone passing --resume.
+    let snapshot_path = snapshot::snapshot_path(&run_dir);
+    let state = if args.resume.is_some() || snapshot_path.exists() {
+        let state = snapshot::load(&snapshot_path, &cfg.name)?;
+        tracing::info!(
+            reports = state.stats.episodes,
+            env_steps = state.stats.env_steps,
+            "resumed the curriculum from the snapshot in {}",
+            run_dir.display()
+        );
+        state
+    } else {
+        ServerState::new(Curriculum::new(&cfg, &demo_metas(&demos))?, unix_now())
     };
     tracing::info!(demos = demos.demos.len(), file = %demo_path.display(), "curriculum over {} demos", demos.demos.len());
-    let shared = Shared::new(state, cfg, DemoResets::from_demos(&demos));
+    let shared = Shared::new(
+        state,
+        cfg,
+        DemoResets::from_demos(&demos),
+        auth.guard.clone(),
+    );
     let bound = Bound::bind(
         SocketAddr::new(args.bind, args.port),
         SocketAddr::new(args.bind, args.dashboard_port),
@@ -117,7 +130,7 @@ async fn run(args: Args) -> Result<()> {
     let (grpc, dash) = bound.addrs()?;
     // One machine-readable line on stdout: `rfcl train` and tests read the ports from it.
     println!("curriculum-server ready grpc={grpc} dashboard=http://{dash}/");
-    serve(shared, bound, Some(run_dir), shutdown_signal()).await
+    serve(shared, bound, auth, Some(run_dir), shutdown_signal()).await
 }
 
 /// SIGINT or SIGTERM.

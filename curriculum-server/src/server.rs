@@ -11,9 +11,13 @@ use axum::extract::State;
 use axum::http::header;
 use axum::response::{Html, IntoResponse};
 use axum::routing::get;
+use rfcl_proto::auth::ServerAuth;
+use rfcl_proto::health;
 use rfcl_proto::v1::curriculum_server::CurriculumServer;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
+use tonic::server::NamedService;
+use tonic::service::interceptor::InterceptedService;
 
 use crate::service::{unix_now, CurriculumService, Shared};
 use crate::{dashboard, snapshot};
@@ -84,10 +88,13 @@ fn write_snapshot(shared: &Shared, run_dir: &std::path::Path) -> anyhow::Result<
     Ok(())
 }
 
-/// Serves until `shutdown` resolves, then writes a last snapshot (when there is a run dir).
+/// Serves until `shutdown` resolves, then writes a last snapshot (when there is a run dir). Every
+/// gRPC call must carry the run's token (`auth`, whose guard `shared` counts the refusals of); the
+/// standard health service answers probes.
 pub async fn serve(
     shared: Shared,
     bound: Bound,
+    auth: ServerAuth,
     run_dir: Option<PathBuf>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
@@ -149,10 +156,20 @@ pub async fn serve(
 
     let dashboard = axum::serve(bound.dashboard, dashboard_router(shared.clone()))
         .with_graceful_shutdown(stopped(stop_rx.clone()));
-    let grpc = tonic::transport::Server::builder()
-        .add_service(CurriculumServer::new(CurriculumService {
-            shared: shared.clone(),
-        }))
+    let (reporter, health) = health::health_reporter();
+    health::serving(
+        &reporter,
+        <CurriculumServer<CurriculumService> as NamedService>::NAME,
+    )
+    .await;
+    let curriculum = CurriculumServer::new(CurriculumService {
+        shared: shared.clone(),
+    });
+    let grpc = auth
+        .server()
+        .context("configuring TLS")?
+        .add_service(health)
+        .add_service(InterceptedService::new(curriculum, auth.guard.clone()))
         .serve_with_incoming_shutdown(
             tokio_stream::wrappers::TcpListenerStream::new(bound.grpc),
             stopped(stop_rx.clone()),

@@ -12,6 +12,7 @@ use rfcl_core::config::{RunConfig, Suite};
 use rfcl_core::demo::DemoSet;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
 use rfcl_core::maze::Cell;
+use rfcl_proto::auth::Guard;
 use rfcl_proto::v1;
 use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
@@ -550,6 +551,8 @@ impl ServerState {
                 epoch_mismatch: r.epoch_mismatch,
                 malformed: self.stats.malformed_reports,
             },
+            // Known only to the gRPC service: `Shared::view` fills it in.
+            unauthenticated_calls: 0,
             solved_frac: reverse.solved_frac(),
             demos,
             levels,
@@ -578,10 +581,12 @@ pub struct Shared {
     pub stage_tx: Arc<watch::Sender<v1::StageEvent>>,
     /// Signalled when `snapshot_every_reports` reports have been applied since the last snapshot.
     pub snapshot_due: Arc<tokio::sync::Notify>,
+    /// The gRPC service's token check: the views count its refusals.
+    pub guard: Guard,
 }
 
 impl Shared {
-    pub fn new(state: ServerState, cfg: RunConfig, demos: DemoResets) -> Self {
+    pub fn new(state: ServerState, cfg: RunConfig, demos: DemoResets, guard: Guard) -> Self {
         let (stage_tx, _) = watch::channel(state.stage_event());
         Shared {
             state: Arc::new(Mutex::new(state)),
@@ -589,6 +594,7 @@ impl Shared {
             demos: Arc::new(demos),
             stage_tx: Arc::new(stage_tx),
             snapshot_due: Arc::new(tokio::sync::Notify::new()),
+            guard,
         }
     }
 
@@ -602,6 +608,7 @@ impl Shared {
         let now = unix_now();
         let state = self.lock();
         let mut view = state.view(&self.cfg.name, &self.cfg.env.env_id, now);
+        view.unauthenticated_calls = self.guard.refused();
         if self.cfg.env.suite == Suite::Pointmaze {
             view.maze = Some(state.maze_view(&self.demos));
         }

@@ -1,6 +1,7 @@
 //! Cross-process tests of the `curriculum-server` binary over real gRPC on loopback: stage 1 to
-//! stage 2 with a synthetic outcome model, SIGKILL + `--resume` continuing exactly from the last
-//! snapshot, and bad input that gets clear statuses and changes nothing.
+//! stage 2 with a synthetic outcome model, SIGKILL and a restart continuing exactly from the last
+//! snapshot, bad input that gets clear statuses and changes nothing, and calls without the run's
+//! token refused.
 mod common;
 
 use common::*;
@@ -54,7 +55,7 @@ fn synthetic_outcome(
 }
 
 async fn state_view(
-    client: &mut v1::curriculum_client::CurriculumClient<tonic::transport::Channel>,
+    client: &mut v1::curriculum_client::CurriculumClient<rfcl_proto::auth::AuthChannel>,
 ) -> DashboardView {
     let json = client
         .get_state(v1::GetStateRequest {})
@@ -150,7 +151,8 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     let mut snap = snapshot::load(&snap_path, "ctest").expect("a periodic snapshot exists");
     assert!(snap.stats.episodes > 0 && snap.stats.episodes <= before_kill.episodes);
 
-    let mut restarted = ServerProcess::start(&["--demos", d, "--config", c, "--resume", r]);
+    // Started as before, it finds its snapshot in its run directory and continues from it.
+    let mut restarted = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
     let mut client = restarted.client().await;
     let resumed = state_view(&mut client).await;
     let snap_view = snap.view(
@@ -345,6 +347,7 @@ fn startup_errors_are_one_clear_line() {
     let missing = dir.path().join("nope.h5");
     let _guard = hdf5_fork_guard();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
+        .env("RFCL_TOKEN", TEST_TOKEN)
         .args([
             "--demos",
             missing.to_str().unwrap(),
@@ -360,4 +363,155 @@ fn startup_errors_are_one_clear_line() {
         .find(|l| l.starts_with("error:"))
         .expect("an error line");
     assert!(line.contains("nope.h5"), "{line}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
+    use rfcl_proto::auth::{authenticated, Token};
+    use rfcl_proto::v1::curriculum_client::CurriculumClient;
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start_fresh(dir.path(), 30.0);
+    let mut client = server.client().await;
+    let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+    let before = curriculum_part(&state_view(&mut client).await);
+
+    let mut bare = CurriculumClient::new(server.channel().await);
+    let wrong = Token::parse("not-the-run-token-0123", "a test").unwrap();
+    let mut forged = CurriculumClient::new(authenticated(server.channel().await, &wrong));
+    for status in [
+        bare.acquire(acquire_req(1)).await.unwrap_err(),
+        bare.report(report_for(&lease, true, 1.0))
+            .await
+            .unwrap_err(),
+        forged
+            .report(report_for(&lease, true, 1.0))
+            .await
+            .unwrap_err(),
+        forged.get_state(v1::GetStateRequest {}).await.unwrap_err(),
+        forged
+            .watch_stage(v1::WatchStageRequest {})
+            .await
+            .unwrap_err(),
+    ] {
+        assert_eq!(status.code(), tonic::Code::Unauthenticated, "{status:?}");
+        assert!(
+            status.message().contains("RFCL_TOKEN"),
+            "{}",
+            status.message()
+        );
+    }
+    let after = state_view(&mut client).await;
+    assert_eq!(
+        curriculum_part(&after),
+        before,
+        "refused calls changed nothing"
+    );
+    assert_eq!(
+        after.open_leases, 1,
+        "the forged report did not close the lease"
+    );
+    assert_eq!(after.unauthenticated_calls, 5);
+    let out = std::process::Command::new("curl")
+        .args(["-sf", &format!("{}metrics", server.dashboard)])
+        .output()
+        .unwrap();
+    let metrics = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        metrics.contains("rfcl_curriculum_unauthenticated_calls_total 5"),
+        "{metrics}"
+    );
+    // The standard health service answers without a token: probes cannot send one.
+    let endpoint = tonic::transport::Endpoint::from_shared(server.grpc.clone()).unwrap();
+    let serving = rfcl_proto::health::check(
+        endpoint,
+        "rfcl.v1.Curriculum",
+        std::time::Duration::from_secs(5),
+    )
+    .await
+    .unwrap();
+    assert!(serving);
+    // The reported lease is still the holder's to report.
+    let ack = client
+        .report(report_for(&lease, true, 1.0))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(ack.applied);
+}
+
+#[test]
+fn a_server_without_a_run_token_does_not_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 1, 20);
+    let config = write_config(dir.path(), 30.0);
+    let _guard = hdf5_fork_guard();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
+        .env_remove("RFCL_TOKEN")
+        .env_remove("RFCL_TOKEN_FILE")
+        .args([
+            "--demos",
+            demos.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(out.stdout.is_empty(), "no ready line");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("no run token") && stderr.contains("RFCL_TOKEN_FILE"),
+        "{stderr}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_a_certificate_the_server_speaks_tls_only() {
+    use rfcl_proto::auth::{ClientAuth, TLS_CERT_ENV, TLS_KEY_ENV};
+    use rfcl_proto::v1::curriculum_client::CurriculumClient;
+    let dir = tempfile::tempdir().unwrap();
+    let cert = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
+    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
+    std::fs::write(&cert_path, cert.cert.pem()).unwrap();
+    std::fs::write(&key_path, cert.signing_key.serialize_pem()).unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 30.0);
+    let run_dir = dir.path().join("run");
+    let server = ServerProcess::start_with_env(
+        &[
+            "--demos",
+            demos.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+            "--run-dir",
+            run_dir.to_str().unwrap(),
+        ],
+        &[(TLS_CERT_ENV, &cert_path), (TLS_KEY_ENV, &key_path)],
+    );
+    let port = server.grpc.rsplit(':').next().unwrap();
+    let url = format!("https://localhost:{port}");
+
+    // A client that trusts the certificate and carries the token gets through.
+    let auth = ClientAuth::plain(test_token())
+        .with_tls_ca(&cert_path)
+        .unwrap();
+    let endpoint = auth
+        .endpoint(tonic::transport::Endpoint::from_shared(url.clone()).unwrap())
+        .unwrap();
+    let mut client = CurriculumClient::new(auth.wrap(endpoint.connect().await.unwrap()));
+    let view = state_view(&mut client).await;
+    assert_eq!(view.demos.len(), 3);
+
+    // A plain-text client gets nowhere.
+    let plain = tonic::transport::Endpoint::from_shared(format!("http://localhost:{port}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut plain = CurriculumClient::new(authenticated_test(plain));
+    assert!(plain.get_state(v1::GetStateRequest {}).await.is_err());
+}
+
+fn authenticated_test(channel: tonic::transport::Channel) -> rfcl_proto::auth::AuthChannel {
+    rfcl_proto::auth::authenticated(channel, &test_token())
 }

@@ -21,6 +21,7 @@ use rfcl_learner::ingest::{IngestCounters, IngestItem};
 use rfcl_learner::service::{self, LearnerService, RunDescription};
 use rfcl_learner::shm::{ShmSetup, ShmTransport};
 use rfcl_learner::trainer::LearnerStatus;
+use rfcl_proto::auth::{authenticated, ServerAuth, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::learner_client::LearnerClient;
 use rfcl_shm::{PolicyLimits, Sent, ShmNode, TransitionLimits, TransitionPublisher};
@@ -161,6 +162,8 @@ fn bench_grpc(
     let (taken, consumer) = consumer(data_rx);
     let (_policy_tx, policy_rx) = policy_channel();
     let (stopping_tx, stopping_rx) = watch::channel(false);
+    let token = Token::parse("bench-token-0123456789", "the bench").expect("a valid token");
+    let auth = ServerAuth::plain(&token);
     let info = RunDescription {
         run_name: "bench".into(),
         env_id: "bench".into(),
@@ -182,12 +185,13 @@ fn bench_grpc(
         policy_rx,
         stopping_rx.clone(),
         IngestCounters::new(),
+        auth.guard.clone(),
     );
     let measured = rt.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let mut stopped = stopping_rx.clone();
-        let server = tokio::spawn(service::serve(listener, service, async move {
+        let server = tokio::spawn(service::serve(listener, service, auth, async move {
             let _ = stopped.wait_for(|s| *s).await;
         }));
         let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
@@ -196,7 +200,7 @@ fn bench_grpc(
             .connect()
             .await
             .unwrap();
-        let mut client = LearnerClient::new(channel);
+        let mut client = LearnerClient::new(authenticated(channel, &token));
         let message = v1::TransitionBatch {
             actor_id: 1,
             obs_dim: OBS as u32,

@@ -27,6 +27,7 @@ use rfcl_learner::checkpoint::{self, Manifest};
 use rfcl_learner::service::{self, LearnerService, RunDescription};
 use rfcl_learner::stages;
 use rfcl_learner::trainer::{StopReason, Trainer, TrainerInputs};
+use rfcl_proto::auth::{ClientAuth, ServerAuth};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, oneshot, watch};
 
@@ -113,8 +114,12 @@ fn main() -> ExitCode {
 async fn run(args: Args) -> Result<()> {
     // Installed first: a signal during start-up is handled, not fatal.
     let mut signals = Signals::install()?;
-    let manifest = match &args.resume {
-        Some(dir) => Some(
+    // Every call needs the run's token (and TLS when configured), ours to the curriculum server
+    // too: read before anything else so a missing token fails at once.
+    let server_auth = ServerAuth::from_env().context("the learner's gRPC service")?;
+    let client_auth = ClientAuth::from_env().context("calling the curriculum server")?;
+    let manifest = match (&args.resume, &args.run_dir) {
+        (Some(dir), _) => Some(
             checkpoint::read_manifest(&checkpoint::checkpoint_dir(dir))?.with_context(|| {
                 format!(
                     "--resume {}: no learner checkpoint in {}",
@@ -123,26 +128,35 @@ async fn run(args: Args) -> Result<()> {
                 )
             })?,
         ),
-        None => None,
+        (None, Some(dir)) => checkpoint::read_manifest(&checkpoint::checkpoint_dir(dir))?,
+        (None, None) => None,
     };
     let cfg = load_config(&args, manifest.as_ref())?;
-    let demos = load_demos(&args, &cfg)?;
-
     let run_dir = args
         .resume
         .clone()
         .or(args.run_dir.clone())
         .unwrap_or_else(|| PathBuf::from("runs").join(&cfg.name));
+    // A learner that finds its own checkpoint in its run directory continues it (a restarted
+    // container, a supervisor's restart): the run goes on without anyone passing --resume.
+    let manifest = match manifest {
+        Some(m) => Some(m),
+        None => checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))?,
+    };
+    if args.resume.is_none() {
+        if let Some(m) = &manifest {
+            tracing::info!(
+                generation = m.generation,
+                env_steps = m.progress.env_steps,
+                "found a learner checkpoint in {}: resuming from it",
+                run_dir.display()
+            );
+        }
+    }
+    let demos = load_demos(&args, &cfg)?;
     std::fs::create_dir_all(&run_dir)
         .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
     let ckpt_dir = checkpoint::checkpoint_dir(&run_dir);
-    if manifest.is_none() && checkpoint::read_manifest(&ckpt_dir)?.is_some() {
-        bail!(
-            "{} already holds a learner checkpoint: pass --resume {} to continue it, or choose another --run-dir",
-            run_dir.display(),
-            run_dir.display()
-        );
-    }
     let mut member_threads = 1;
     if cfg.sac.device == Device::Cpu {
         let threads = cfg.learner.threads_here(args.threads);
@@ -164,7 +178,7 @@ async fn run(args: Args) -> Result<()> {
     }
 
     let timeout = Duration::from_secs_f64(args.connect_timeout_s.max(0.1));
-    let (stage_stream, first_stage) = stages::open(&args.curriculum, timeout)
+    let (stage_stream, first_stage) = stages::open(&args.curriculum, &client_auth, timeout)
         .await
         .context("subscribing to the curriculum server's stage announcements")?;
     tracing::info!(
@@ -273,6 +287,7 @@ async fn run(args: Args) -> Result<()> {
         policy_rx,
         stopping_rx.clone(),
         counters.clone(),
+        server_auth.guard.clone(),
     );
 
     let metrics_field = match metrics_listener {
@@ -294,6 +309,7 @@ async fn run(args: Args) -> Result<()> {
 
     tokio::spawn(stages::follow(
         args.curriculum.clone(),
+        client_auth,
         stage_stream,
         stage_tx,
         stopping_rx.clone(),
@@ -312,7 +328,7 @@ async fn run(args: Args) -> Result<()> {
         })
         .context("starting the training thread")?;
     let mut stopped = stopping_rx.clone();
-    let server = tokio::spawn(service::serve(listener, service, async move {
+    let server = tokio::spawn(service::serve(listener, service, server_auth, async move {
         let _ = stopped.wait_for(|s| *s).await;
     }));
 

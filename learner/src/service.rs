@@ -26,11 +26,15 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use rfcl_core::transition::RecordLayout;
+use rfcl_proto::auth::{Guard, ServerAuth};
+use rfcl_proto::health;
 use rfcl_proto::v1;
 use rfcl_proto::v1::learner_server::{Learner, LearnerServer};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::{Stream, StreamExt};
+use tonic::server::NamedService;
+use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::ingest::{validate_batch, IngestCounters, IngestItem, StreamTally, Transport};
@@ -91,6 +95,8 @@ pub struct LearnerService {
     /// True once the learner is shutting down: open streams are answered and closed.
     stopping: watch::Receiver<bool>,
     counters: Arc<IngestCounters>,
+    /// The token check of this service: Health reports its refusals.
+    guard: Guard,
 }
 
 impl LearnerService {
@@ -101,6 +107,7 @@ impl LearnerService {
         policy: watch::Receiver<Arc<v1::PolicyWeights>>,
         stopping: watch::Receiver<bool>,
         counters: Arc<IngestCounters>,
+        guard: Guard,
     ) -> Self {
         let layout = RecordLayout::new(info.obs_dim as usize, info.action_dim as usize);
         Self {
@@ -111,6 +118,7 @@ impl LearnerService {
             policy,
             stopping,
             counters,
+            guard,
         }
     }
 
@@ -228,21 +236,31 @@ impl Learner for LearnerService {
             shm_batches: t.shm_batches,
             shm_lost_records: t.shm_lost_records,
             refused_batches: t.refused_batches,
+            unauthenticated_calls: self.guard.refused(),
         }))
     }
 }
 
-/// Serves the learner service on `listener` until `shutdown` resolves.
+/// Serves the learner service on `listener` until `shutdown` resolves: every call must carry the
+/// run's token (`auth`), and the standard health service answers probes.
 pub async fn serve(
     listener: TcpListener,
     service: LearnerService,
+    auth: ServerAuth,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
-    tonic::transport::Server::builder()
+    let (reporter, health) = health::health_reporter();
+    health::serving(
+        &reporter,
+        <LearnerServer<LearnerService> as NamedService>::NAME,
+    )
+    .await;
+    auth.server()?
         .tcp_nodelay(true)
         .initial_stream_window_size(STREAM_WINDOW_BYTES)
         .initial_connection_window_size(CONNECTION_WINDOW_BYTES)
-        .add_service(service.into_server())
+        .add_service(health)
+        .add_service(InterceptedService::new(service.into_server(), auth.guard))
         .serve_with_incoming_shutdown(
             tokio_stream::wrappers::TcpListenerStream::new(listener),
             shutdown,

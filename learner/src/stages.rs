@@ -4,6 +4,7 @@
 //! training thread always learns of every stage epoch.
 use std::time::Duration;
 
+use rfcl_proto::auth::ClientAuth;
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use thiserror::Error;
@@ -38,15 +39,16 @@ pub enum StageWatchError {
 /// event (the current stage).
 pub async fn open(
     addr: &str,
+    auth: &ClientAuth,
     timeout: Duration,
 ) -> Result<(Streaming<v1::StageEvent>, v1::StageEvent), StageWatchError> {
     let attempt = async {
         let endpoint = Endpoint::from_shared(addr.to_string())
+            .and_then(|e| auth.endpoint(e.connect_timeout(timeout)))
             .map_err(|source| StageWatchError::Address {
                 addr: addr.into(),
                 source,
-            })?
-            .connect_timeout(timeout);
+            })?;
         let channel: Channel =
             endpoint
                 .connect()
@@ -55,7 +57,7 @@ pub async fn open(
                     addr: addr.into(),
                     source,
                 })?;
-        let mut stream = CurriculumClient::new(channel)
+        let mut stream = CurriculumClient::new(auth.wrap(channel))
             .watch_stage(v1::WatchStageRequest {})
             .await
             .map_err(|status| StageWatchError::Refused {
@@ -84,6 +86,7 @@ pub async fn open(
 /// until `stopping` turns true or the receiver is gone.
 pub async fn follow(
     addr: String,
+    auth: ClientAuth,
     mut stream: Streaming<v1::StageEvent>,
     events: mpsc::UnboundedSender<v1::StageEvent>,
     mut stopping: watch::Receiver<bool>,
@@ -110,7 +113,7 @@ pub async fn follow(
                 _ = tokio::time::sleep(RECONNECT_EVERY) => {}
                 _ = stopping.wait_for(|s| *s) => return,
             }
-            match open(&addr, Duration::from_secs(5)).await {
+            match open(&addr, &auth, Duration::from_secs(5)).await {
                 Ok((next, first)) => {
                     tracing::info!("WatchStage re-opened at {addr}");
                     if events.send(first).is_err() {

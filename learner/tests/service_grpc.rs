@@ -239,3 +239,53 @@ async fn async_mode_updates_flat_out_and_reports_the_achieved_ratio() {
         value("learner/utd")
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
+    use rfcl_proto::auth::{authenticated, Token};
+    use rfcl_proto::v1::learner_client::LearnerClient;
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path());
+    let config = write_config(dir.path(), W, 100_000, "");
+    let curriculum = Curriculum::start(&config, &demos, &dir.path().join("run"));
+    let args = Learner::args(&config, &curriculum.grpc, &demos, &dir.path().join("run"));
+    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    let learner = Learner::start(&args);
+    let channel = || async {
+        tonic::transport::Channel::from_shared(learner.grpc.clone())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap()
+    };
+    let wrong = Token::parse("not-the-run-token-0123", "a test").unwrap();
+    let mut forged = LearnerClient::new(authenticated(channel().await, &wrong));
+    let mut bare = LearnerClient::new(channel().await);
+    let refusals = [
+        push(&mut forged, batches(0..40, 6, 0)).await.unwrap_err(),
+        bare.health(v1::HealthRequest {}).await.unwrap_err(),
+        forged
+            .watch_policy(v1::WatchPolicyRequest { after_version: 0 })
+            .await
+            .unwrap_err(),
+        forged
+            .get_run_info(v1::GetRunInfoRequest::default())
+            .await
+            .unwrap_err(),
+    ];
+    for status in refusals {
+        assert_eq!(status.code(), tonic::Code::Unauthenticated, "{status:?}");
+    }
+    let mut client = learner.client().await;
+    let h = health(&mut client).await;
+    assert_eq!(h.env_steps, 0, "the forged transitions were not taken");
+    assert_eq!(h.grpc_records, 0);
+    assert_eq!(h.unauthenticated_calls, 4);
+    // The standard health service needs no token (container probes send none).
+    let endpoint = tonic::transport::Endpoint::from_shared(learner.grpc.clone()).unwrap();
+    assert!(
+        rfcl_proto::health::check(endpoint, "rfcl.v1.Learner", Duration::from_secs(5))
+            .await
+            .unwrap()
+    );
+}

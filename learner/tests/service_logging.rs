@@ -89,6 +89,7 @@ async fn metrics_endpoint_while_training_and_tensorboard_events_equal_to_metrics
     let mut child = Command::new(env!("CARGO_BIN_EXE_learner"))
         .args(["--threads", "1", "--metrics-port", "0"])
         .args(Learner::args(&config, &curriculum.grpc, &demos, &run_dir))
+        .env("RFCL_TOKEN", TEST_TOKEN)
         .env("OMP_WAIT_POLICY", "PASSIVE")
         .stdout(Stdio::piped())
         .stderr(Stdio::null())

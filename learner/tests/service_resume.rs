@@ -1,4 +1,4 @@
-//! SIGKILL after a checkpoint, then `--resume` (ARCHITECTURE "Resume that comes back empty"): the
+//! SIGKILL after a checkpoint, then `--resume` (or a plain restart on the same run directory) (ARCHITECTURE "Resume that comes back empty"): the
 //! resumed learner holds exactly the checkpointed weights, optimiser states, temperature,
 //! counters, RNG states and both buffers, and, fed the same transitions, ends bit for bit where an
 //! uninterrupted run ends.
@@ -208,18 +208,29 @@ async fn sigkill_then_resume_restores_everything_and_continues_exactly() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_fresh_start_refuses_a_run_dir_with_a_checkpoint() {
+async fn a_learner_that_finds_its_checkpoint_in_its_run_dir_continues_it() {
     let dir = tempfile::tempdir().unwrap();
     let run = Run::new(dir.path());
     let mut learner = run.start(false);
-    assert!(learner.sigterm().success());
-    let args = Learner::args(&run.config, &run.curriculum_addr, &run.demos, &run.run_dir);
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let (status, stdout, stderr) = run_learner(&args);
-    assert!(!status.success());
-    assert!(stdout.is_empty(), "no ready line: {stdout:?}");
-    assert!(
-        stderr.contains("already holds a learner checkpoint") && stderr.contains("--resume"),
-        "{stderr}"
+    feed(&learner, 0..52).await;
+    learner.sigkill();
+    let (at_40, manifest_40) = snapshot(&run.run_dir);
+    assert_eq!(manifest_40.progress.env_steps, 40);
+
+    // Started exactly as the first time (no --resume), as a container engine restarts it.
+    let mut learner = run.start(false);
+    let mut client = learner.client().await;
+    let h = health(&mut client).await;
+    assert_eq!(
+        (h.env_steps, h.updates, h.policy_version),
+        (
+            40,
+            manifest_40.progress.critic_updates,
+            manifest_40.progress.policy_version
+        )
     );
+    assert!(learner.sigterm().success());
+    let (resumed, _) = snapshot(&run.run_dir);
+    assert_eq!(resumed.networks, at_40.networks, "weights");
+    assert!(resumed.replay == at_40.replay, "buffer contents");
 }

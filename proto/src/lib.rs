@@ -5,7 +5,9 @@
 //! types and back, rejecting malformed messages with an error that names the field.
 #![forbid(unsafe_code)]
 
+pub mod auth;
 pub mod convert;
+pub mod health;
 
 pub mod v1 {
     tonic::include_proto!("rfcl.v1");

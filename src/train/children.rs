@@ -16,6 +16,7 @@ use std::process::{ExitStatus, Stdio};
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
+use rfcl_proto::auth::{self, Token};
 use rustix::process::{kill_process, Pid, Signal};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 
@@ -36,6 +37,8 @@ pub struct Launcher {
     pub bin_dir: PathBuf,
     pub log_dir: PathBuf,
     pub setpriv: Option<PathBuf>,
+    /// The run's token, handed to every child in its environment (never on its command line).
+    pub token: Token,
 }
 
 impl Launcher {
@@ -84,6 +87,8 @@ impl Launcher {
         if std::env::var_os("RUST_LOG").is_none() {
             cmd.env("RUST_LOG", "info");
         }
+        cmd.env(auth::TOKEN_ENV, self.token.expose())
+            .env_remove(auth::TOKEN_FILE_ENV);
         let mut child = cmd
             .spawn()
             .with_context(|| format!("starting {}", program.display()))?;
@@ -266,6 +271,7 @@ mod tests {
             bin_dir: dir.path().to_path_buf(),
             log_dir: dir.path().to_path_buf(),
             setpriv: None,
+            token: Token::parse("children-test-token-0123", "a test").unwrap(),
         };
         let mut child = launcher.spawn("learner", "fake-learner", vec![]).unwrap();
         let line = child.ready_line(Duration::from_secs(30)).await.unwrap();

@@ -28,6 +28,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
 use rfcl_curriculum::dashboard::DashboardView;
+use rfcl_proto::auth::{self, AuthChannel, ClientAuth, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
@@ -249,8 +250,8 @@ struct Session {
     curriculum_addr: String,
     dashboard: String,
     actors: Vec<ActorProc>,
-    curriculum: CurriculumClient<Channel>,
-    learner_client: LearnerClient<Channel>,
+    curriculum: CurriculumClient<AuthChannel>,
+    learner_client: LearnerClient<AuthChannel>,
     started: Instant,
     evals: EvalTracker,
     counters: LearnerCounters,
@@ -279,6 +280,7 @@ async fn train_async(args: TrainArgs) -> Result<Summary> {
         bin_dir,
         log_dir: prep.run_dir.join("logs"),
         setpriv,
+        token: run_token(&prep.run_dir)?,
     };
     eprintln!(
         "{} run '{}' in {} (logs in {})",
@@ -290,6 +292,35 @@ async fn train_async(args: TrainArgs) -> Result<Summary> {
     let mut session = Session::start(prep, launcher).await?;
     let ending = session.supervise().await;
     session.finish(ending).await
+}
+
+/// The token every call between this run's processes carries: the one in the environment
+/// (`RFCL_TOKEN` or `RFCL_TOKEN_FILE`) when set, else a fresh random one for this session. It is
+/// written to `RUN_DIR/token` (owner-only), so actors started by hand on other hosts can join
+/// (`RFCL_TOKEN_FILE=RUN_DIR/token actor --connect ...`).
+fn run_token(run_dir: &Path) -> Result<Token> {
+    let token = if std::env::var_os(auth::TOKEN_ENV).is_some()
+        || std::env::var_os(auth::TOKEN_FILE_ENV).is_some()
+    {
+        Token::from_env().context("the run token given in the environment")?
+    } else {
+        Token::random()
+    };
+    let path = run_dir.join("token");
+    {
+        use std::io::Write;
+        use std::os::unix::fs::OpenOptionsExt;
+        let _ = std::fs::remove_file(&path);
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .mode(0o600)
+            .open(&path)
+            .with_context(|| format!("writing the run token to {}", path.display()))?;
+        writeln!(file, "{}", token.expose())
+            .with_context(|| format!("writing the run token to {}", path.display()))?;
+    }
+    Ok(token)
 }
 
 fn os(args: &[&str]) -> Vec<OsString> {
@@ -354,9 +385,10 @@ impl Session {
             eprintln!("learner metrics (Prometheus): {metrics}");
         }
 
-        let curriculum =
-            CurriculumClient::new(channel(&curriculum_url)?).max_decoding_message_size(64 << 20);
-        let learner_client = LearnerClient::new(channel(&learner_url)?);
+        let client_auth = ClientAuth::plain(launcher.token.clone());
+        let curriculum = CurriculumClient::new(client_auth.wrap(channel(&curriculum_url)?))
+            .max_decoding_message_size(64 << 20);
+        let learner_client = LearnerClient::new(client_auth.wrap(channel(&learner_url)?));
 
         // Actors: ids 0.. for training, then the eval actors.
         let s = &cfg.service;
@@ -458,6 +490,8 @@ impl Session {
             "curriculum": self.curriculum_addr,
             "dashboard": self.dashboard,
             "learner": self.learner_addr,
+            // The run's token lives in this file, never in processes.json itself.
+            "token_file": self.prep.run_dir.join("token"),
             "children": list,
         });
         write_json(&self.prep.run_dir.join("processes.json"), &doc)

@@ -10,6 +10,7 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use rfcl_proto::auth::{authenticated, AuthChannel, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
@@ -217,11 +218,29 @@ pub fn child_pid(processes: &Value, name: &str) -> u64 {
         .unwrap()
 }
 
+/// The run token of services a test starts itself (not through `rfcl train`).
+pub const TEST_TOKEN: &str = "whole-run-test-token-0123";
+
+/// A channel to `addr` whose calls carry the run's token: the one in the file processes.json
+/// names (`rfcl train` made it), else [`TEST_TOKEN`].
+async fn connect(processes: &Value, addr: String) -> Option<AuthChannel> {
+    let token = match processes["token_file"].as_str() {
+        Some(path) => Token::read_file(Path::new(path)).ok()?,
+        None => Token::parse(TEST_TOKEN, "the tests").unwrap(),
+    };
+    let channel = tonic::transport::Channel::from_shared(addr)
+        .ok()?
+        .connect()
+        .await
+        .ok()?;
+    Some(authenticated(channel, &token))
+}
+
 /// The learner's Health (env steps received, critic updates, policy version).
 pub fn learner_health(processes: &Value) -> Option<v1::HealthReply> {
     let addr = processes["learner"].as_str()?.to_string();
     block_on(async move {
-        let mut c = LearnerClient::connect(addr).await.ok()?;
+        let mut c = LearnerClient::new(connect(processes, addr).await?);
         c.health(v1::HealthRequest {})
             .await
             .ok()
@@ -233,7 +252,7 @@ pub fn learner_health(processes: &Value) -> Option<v1::HealthReply> {
 pub fn curriculum_state(processes: &Value) -> Option<Value> {
     let addr = processes["curriculum"].as_str()?.to_string();
     block_on(async move {
-        let mut c = CurriculumClient::connect(addr).await.ok()?;
+        let mut c = CurriculumClient::new(connect(processes, addr).await?);
         let json = c
             .get_state(v1::GetStateRequest {})
             .await

@@ -5,8 +5,16 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 
 use rfcl_core::demo::{Demo, DemoSet, ResetArgs, StateLayout, SuccessSource};
+use rfcl_proto::auth::{authenticated, AuthChannel, Token};
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use tonic::transport::Channel;
+
+/// The run token of the test servers.
+pub const TEST_TOKEN: &str = "curriculum-test-token-0123";
+
+pub fn test_token() -> Token {
+    Token::parse(TEST_TOKEN, "the tests").unwrap()
+}
 
 /// HDF5 opens files without O_CLOEXEC and holds a flock on them: a child forked while another test
 /// thread has a demo file open would inherit that lock for its whole life. Writing, reading and
@@ -101,9 +109,17 @@ impl ServerProcess {
     }
 
     pub fn start(args: &[&str]) -> ServerProcess {
+        Self::start_with_env(args, &[])
+    }
+
+    /// Starts the server with extra environment variables.
+    pub fn start_with_env(args: &[&str], env: &[(&str, &Path)]) -> ServerProcess {
         let guard = hdf5_fork_guard();
         let mut child = Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
             .args(args)
+            .envs(env.iter().map(|(k, v)| (k, v)))
+            .env("RFCL_TOKEN", TEST_TOKEN)
+            .env_remove("RFCL_TOKEN_FILE")
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
@@ -134,8 +150,16 @@ impl ServerProcess {
         }
     }
 
-    pub async fn client(&self) -> CurriculumClient<Channel> {
-        CurriculumClient::connect(self.grpc.clone())
+    /// A client that carries the run's token.
+    pub async fn client(&self) -> CurriculumClient<AuthChannel> {
+        CurriculumClient::new(authenticated(self.channel().await, &test_token()))
+    }
+
+    /// A bare connection: calls on it carry no token.
+    pub async fn channel(&self) -> Channel {
+        Channel::from_shared(self.grpc.clone())
+            .unwrap()
+            .connect()
             .await
             .expect("connecting to the curriculum server")
     }

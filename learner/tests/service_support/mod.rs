@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use rfcl_core::demo::{Demo, DemoSet, ResetArgs, StateLayout, SuccessSource};
 use rfcl_core::transition::{RecordLayout, Transition};
+use rfcl_proto::auth::{authenticated, AuthChannel, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
@@ -103,6 +104,19 @@ pub fn write_config(dir: &Path, seed_steps: u64, steps: u64, sac_extra: &str) ->
     path
 }
 
+/// The run token of the test services.
+pub const TEST_TOKEN: &str = "learner-test-token-0123";
+
+/// A channel to `url` whose calls carry [`TEST_TOKEN`].
+pub async fn connect(url: &str) -> AuthChannel {
+    let channel = Channel::from_shared(url.to_string())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    authenticated(channel, &Token::parse(TEST_TOKEN, "the tests").unwrap())
+}
+
 fn binary_next_to_learner(name: &str) -> PathBuf {
     let path = Path::new(env!("CARGO_BIN_EXE_learner")).with_file_name(name);
     assert!(
@@ -140,6 +154,8 @@ impl Curriculum {
     pub fn start(config: &Path, demos: &Path, run_dir: &Path) -> Curriculum {
         let guard = hdf5_fork_guard();
         let mut child = Command::new(binary_next_to_learner("curriculum-server"))
+            .env("RFCL_TOKEN", TEST_TOKEN)
+            .env_remove("RFCL_TOKEN_FILE")
             .args(["--config".as_ref(), config.as_os_str()])
             .args(["--demos".as_ref(), demos.as_os_str()])
             .args(["--run-dir".as_ref(), run_dir.as_os_str()])
@@ -160,8 +176,8 @@ impl Curriculum {
         }
     }
 
-    pub async fn client(&self) -> CurriculumClient<Channel> {
-        CurriculumClient::connect(self.grpc.clone()).await.unwrap()
+    pub async fn client(&self) -> CurriculumClient<AuthChannel> {
+        CurriculumClient::new(connect(&self.grpc).await)
     }
 
     /// Acquires and reports successful episodes until stage 2 begins (spec 2.7); returns its
@@ -224,6 +240,8 @@ pub struct Learner {
 pub fn run_learner(args: &[&std::ffi::OsStr]) -> (ExitStatus, String, String) {
     let guard = hdf5_fork_guard();
     let child = Command::new(env!("CARGO_BIN_EXE_learner"))
+        .env("RFCL_TOKEN", TEST_TOKEN)
+        .env_remove("RFCL_TOKEN_FILE")
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -248,6 +266,8 @@ impl Learner {
     pub fn start_with_threads(threads: u32, args: &[&std::ffi::OsStr]) -> Learner {
         let guard = hdf5_fork_guard();
         let mut child = Command::new(env!("CARGO_BIN_EXE_learner"))
+            .env("RFCL_TOKEN", TEST_TOKEN)
+            .env_remove("RFCL_TOKEN_FILE")
             .arg("--threads")
             .arg(threads.to_string())
             .args(args)
@@ -307,8 +327,8 @@ impl Learner {
         ]
     }
 
-    pub async fn client(&self) -> LearnerClient<Channel> {
-        LearnerClient::connect(self.grpc.clone()).await.unwrap()
+    pub async fn client(&self) -> LearnerClient<AuthChannel> {
+        LearnerClient::new(connect(&self.grpc).await)
     }
 
     pub fn sigkill(&mut self) {
@@ -394,7 +414,7 @@ pub fn batches(
 
 /// Pushes `batches` in one `PushTransitions` stream.
 pub async fn push(
-    client: &mut LearnerClient<Channel>,
+    client: &mut LearnerClient<AuthChannel>,
     batches: Vec<v1::TransitionBatch>,
 ) -> Result<v1::PushSummary, tonic::Status> {
     client
@@ -403,7 +423,7 @@ pub async fn push(
         .map(|r| r.into_inner())
 }
 
-pub async fn health(client: &mut LearnerClient<Channel>) -> v1::HealthReply {
+pub async fn health(client: &mut LearnerClient<AuthChannel>) -> v1::HealthReply {
     client
         .health(v1::HealthRequest {})
         .await
@@ -413,7 +433,7 @@ pub async fn health(client: &mut LearnerClient<Channel>) -> v1::HealthReply {
 
 /// Polls Health until `done` holds (panics after `limit`).
 pub async fn wait_health(
-    client: &mut LearnerClient<Channel>,
+    client: &mut LearnerClient<AuthChannel>,
     limit: Duration,
     done: impl Fn(&v1::HealthReply) -> bool,
 ) -> v1::HealthReply {

@@ -8,11 +8,12 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, bail, Context, Result};
 use rfcl_actor::retry::Backoff;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, ResetLease};
+use rfcl_proto::auth::{AuthChannel, ClientAuth};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
 use tokio::sync::{mpsc, watch};
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Endpoint;
 use tonic::{Code, Status};
 
 /// Policies and batches can be large (a 256×3 actor is about 300 KB; batches are bounded by
@@ -30,8 +31,9 @@ pub fn normalize_addr(addr: &str) -> String {
     }
 }
 
-/// A lazily connected channel: it (re)connects on use, so a call after an outage tries again.
-pub fn channel(addr: &str, unary_timeout: bool) -> Result<Channel> {
+/// A lazily connected channel whose calls carry the run's token: it (re)connects on use, so a
+/// call after an outage tries again.
+pub fn channel(addr: &str, auth: &ClientAuth, unary_timeout: bool) -> Result<AuthChannel> {
     let uri = normalize_addr(addr);
     let mut endpoint = Endpoint::from_shared(uri.clone())
         .with_context(|| format!("invalid address {addr:?}"))?
@@ -40,7 +42,10 @@ pub fn channel(addr: &str, unary_timeout: bool) -> Result<Channel> {
     if unary_timeout {
         endpoint = endpoint.timeout(CALL_TIMEOUT);
     }
-    Ok(endpoint.connect_lazy())
+    let endpoint = auth
+        .endpoint(endpoint)
+        .with_context(|| format!("TLS for {addr:?}"))?;
+    Ok(auth.wrap(endpoint.connect_lazy()))
 }
 
 /// Statuses that mean "the connection, not the request, failed": retried.
@@ -103,7 +108,7 @@ where
 
 /// The curriculum server as an actor uses it.
 pub struct Curriculum {
-    client: CurriculumClient<Channel>,
+    client: CurriculumClient<AuthChannel>,
     peer: String,
     retry_for: Duration,
 }
@@ -118,9 +123,9 @@ pub enum Reported {
 }
 
 impl Curriculum {
-    pub fn new(addr: &str, retry_for: Duration) -> Result<Self> {
+    pub fn new(addr: &str, auth: &ClientAuth, retry_for: Duration) -> Result<Self> {
         Ok(Self {
-            client: CurriculumClient::new(channel(addr, true)?)
+            client: CurriculumClient::new(channel(addr, auth, true)?)
                 .max_decoding_message_size(MAX_MESSAGE_BYTES),
             peer: format!("curriculum server at {}", normalize_addr(addr)),
             retry_for,
@@ -231,17 +236,17 @@ impl Curriculum {
 /// The learner as an actor uses it.
 #[derive(Clone)]
 pub struct Learner {
-    client: LearnerClient<Channel>,
-    streams: LearnerClient<Channel>,
+    client: LearnerClient<AuthChannel>,
+    streams: LearnerClient<AuthChannel>,
     pub peer: String,
     retry_for: Duration,
 }
 
 impl Learner {
-    pub fn new(addr: &str, retry_for: Duration) -> Result<Self> {
-        let unary = LearnerClient::new(channel(addr, true)?);
+    pub fn new(addr: &str, auth: &ClientAuth, retry_for: Duration) -> Result<Self> {
+        let unary = LearnerClient::new(channel(addr, auth, true)?);
         // Streams live for the whole run: no per-call timeout on their channel.
-        let streams = LearnerClient::new(channel(addr, false)?);
+        let streams = LearnerClient::new(channel(addr, auth, false)?);
         Ok(Self {
             client: unary.max_decoding_message_size(MAX_MESSAGE_BYTES),
             streams: streams

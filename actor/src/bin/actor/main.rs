@@ -19,6 +19,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Parser;
+use rfcl_proto::auth::ClientAuth;
 
 #[derive(Parser)]
 #[command(
@@ -27,18 +28,24 @@ use clap::Parser;
     about = "RFCL actor: steps envs with the latest policy and streams transitions to the learner"
 )]
 struct Args {
-    /// Learner address, e.g. http://127.0.0.1:50051 (the curriculum server's comes from it).
-    #[arg(long, value_name = "ADDR")]
+    /// Learner address, e.g. http://127.0.0.1:50051 or host:port (the curriculum server's comes
+    /// from it).
+    #[arg(long, value_name = "ADDR", env = "RFCL_LEARNER")]
     connect: String,
+    /// The curriculum server's address, when this actor reaches it by another name than the
+    /// one the learner announces (an actor on another host).
+    #[arg(long, value_name = "ADDR", env = "RFCL_CURRICULUM")]
+    curriculum: Option<String>,
     /// Run the deterministic policy on held-out seeds and report eval outcomes (spec 5.7).
     #[arg(long)]
     eval: bool,
     /// Environments stepped by this actor, in lockstep.
     #[arg(long, default_value_t = 4)]
     envs: u32,
-    /// Actor id (seeds derive from the run seed, the actor id and the env index).
-    #[arg(long, default_value_t = 0)]
-    id: u32,
+    /// Actor id (seeds derive from the run seed, the actor id and the env index). Default: one
+    /// derived from the host name, so replicas of one container spec differ.
+    #[arg(long, env = "RFCL_ACTOR_ID")]
+    id: Option<u32>,
     /// Seconds a lost learner or curriculum server is retried before the actor gives up.
     #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
     retry_for: f64,
@@ -63,6 +70,13 @@ fn main() -> ExitCode {
         );
         return ExitCode::FAILURE;
     }
+    let auth = match ClientAuth::from_env() {
+        Ok(auth) => auth,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
     rfcl_actor::net::configure_inference_threads();
     let runtime = match tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -76,9 +90,11 @@ fn main() -> ExitCode {
     };
     let opts = service::Options {
         connect: args.connect,
+        curriculum: args.curriculum,
+        auth,
         eval: args.eval,
         envs: args.envs,
-        id: args.id,
+        id: args.id.unwrap_or_else(id_from_hostname),
         retry_for: Duration::from_secs_f64(args.retry_for),
         transport: args.transport,
     };
@@ -93,6 +109,20 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// An actor id from the host name and the process id: replicas started from one container spec
+/// (distinct host names, the same pid) or by hand on one host (one host name, distinct pids) get
+/// distinct ids, hence distinct seeds; a restarted container keeps its id. Ids below 2^20 stay
+/// free for explicit `--id`s.
+fn id_from_hostname() -> u32 {
+    let name = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+    let key = format!("{}/{}", name.trim(), std::process::id());
+    // FNV-1a: stable across builds and platforms (std's hasher is not guaranteed to be).
+    let hash = key.bytes().fold(0x811c_9dc5u32, |h, b| {
+        (h ^ b as u32).wrapping_mul(0x0100_0193)
+    });
+    (1 << 20) | (hash >> 12)
 }
 
 /// SIGINT or SIGTERM.

@@ -15,6 +15,7 @@ use rfcl_actor::suite::make_env;
 use rfcl_core::config::RunConfig;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport};
 use rfcl_core::transition::{RecordLayout, Transition};
+use rfcl_proto::auth::ClientAuth;
 use rfcl_proto::v1;
 use tokio::sync::{mpsc, watch};
 
@@ -25,6 +26,10 @@ use crate::shm::{self, Choice, Plan, ShmLink};
 #[derive(Debug, Clone)]
 pub struct Options {
     pub connect: String,
+    /// The curriculum server's address when it is not the one the learner announces (an actor
+    /// on another host reaches it by another name).
+    pub curriculum: Option<String>,
+    pub auth: ClientAuth,
     pub eval: bool,
     pub envs: u32,
     pub id: u32,
@@ -58,7 +63,7 @@ pub async fn run(
     if opts.envs == 0 {
         bail!("--envs must be at least 1");
     }
-    let learner = Learner::new(&opts.connect, opts.retry_for)?;
+    let learner = Learner::new(&opts.connect, &opts.auth, opts.retry_for)?;
     let info = learner.run_info(opts.id).await?;
     let cfg = parse_config(&info.config_yaml)
         .with_context(|| format!("the run config sent by the {}", learner.peer))?;
@@ -85,11 +90,15 @@ pub async fn run(
             cfg.env.env_id
         );
     }
+    let curriculum_addr = opts
+        .curriculum
+        .clone()
+        .unwrap_or_else(|| info.curriculum_addr.clone());
     let run = Run {
         obs_dim: info.obs_dim as usize,
         action_dim: info.action_dim as usize,
         run_seed: info.run_seed,
-        curriculum: Curriculum::new(&info.curriculum_addr, opts.retry_for)?,
+        curriculum: Curriculum::new(&curriculum_addr, &opts.auth, opts.retry_for)?,
         cfg,
     };
     let envs = (0..opts.envs)
@@ -121,7 +130,7 @@ pub async fn run(
         action_scale = ?rollout.action_scale(),
         "connected to the {} and the curriculum server at {}",
         learner.peer,
-        info.curriculum_addr
+        curriculum_addr
     );
 
     let layout = RecordLayout::new(run.obs_dim, run.action_dim);
