@@ -25,7 +25,10 @@ pub enum CurriculumError {
     UnknownLevel { level: usize, count: usize },
     #[error("a {kind} assignment cannot be reported in stage {stage:?}")]
     WrongStage { kind: &'static str, stage: Stage },
-    #[error("the curriculum is finished: stage 1 ended and train.stage_1_only is set")]
+    #[error(
+        "the run is finished (stage 1 ended under train.stage_1_only, or the evaluations reached \
+         service.stop_at_eval_success)"
+    )]
     Finished,
 }
 
@@ -177,6 +180,11 @@ impl Curriculum {
 
     pub fn forward(&self) -> &Forward {
         &self.forward
+    }
+
+    /// Ends the run (the stop rule, [`crate::stop`]).
+    pub fn finish(&mut self, env_steps: u64) -> Option<StageChange> {
+        self.stages.finish(env_steps)
     }
 
     pub fn stages(&self) -> &StageMachine {

@@ -15,6 +15,10 @@ pub struct DashboardView {
     pub env_id: String,
     pub stage: u32,
     pub stage_epoch: u64,
+    /// The run is over: nothing more is handed out (the stop rule, or stage 1 under
+    /// `stage_1_only`).
+    #[serde(default)]
+    pub finished: bool,
     /// Env steps reported by train episodes.
     pub env_steps: u64,
     pub stage_1_env_steps: Option<u64>,
@@ -420,7 +424,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 .kv span{{display:inline-block;margin-right:2em}} .solved{{color:#1a7f37;font-weight:bold}} .err{{color:#b00}}</style>
 </head><body>
 <h1>rfcl curriculum · {name} <small>({env})</small></h1>
-<p class="kv"><span id="stage">stage <b>{stage}</b> (epoch {epoch})</span><span>env steps <b>{steps}</b></span>
+<p class="kv"><span id="stage">stage <b>{stage}</b> (epoch {epoch}){finished}</span><span>env steps <b>{steps}</b></span>
 <span>episodes {episodes} ({eps:.1}/s)</span><span>open leases {open}</span><span>expired leases {expired}</span>
 <span>sim worker restarts {restarts}</span>
 <span>demos solved {solved:.0}%</span></p>
@@ -431,6 +435,11 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         env = esc(&view.env_id),
         stage = view.stage,
         epoch = view.stage_epoch,
+        finished = if view.finished {
+            " · <b>run finished</b>"
+        } else {
+            ""
+        },
         steps = view.env_steps,
         episodes = view.episodes,
         eps = view.episodes_per_s,

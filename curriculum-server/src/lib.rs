@@ -4,6 +4,7 @@
 //! * [`reverse`]: stage 1, the per-demo reverse curriculum (spec 2).
 //! * [`forward`]: stage 2, the seed-based forward curriculum (spec 3).
 //! * [`stage`]: the stage machine and its epoch (spec 2.7, 4).
+//! * [`stop`]: the run's stop rule on evaluation success.
 //! * [`curriculum`]: all of them behind `acquire` / `report`, with one seeded random stream;
 //!   serialisable for snapshots.
 #![forbid(unsafe_code)]
@@ -13,6 +14,7 @@ pub mod forward;
 pub mod rank;
 pub mod reverse;
 pub mod stage;
+pub mod stop;
 
 pub use curriculum::{
     Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, EpisodeOutcome, ReportOutcome,

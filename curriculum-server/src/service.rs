@@ -24,8 +24,8 @@ use crate::dashboard::{
 };
 use crate::leases::{LeaseTable, ReportRefusal};
 use crate::{
-    Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, DemoMeta, EpisodeOutcome,
-    LevelSource, Stage,
+    stop, Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, DemoMeta,
+    EpisodeOutcome, LevelSource, Stage,
 };
 
 /// Seconds since the Unix epoch: lease times survive a restart from a snapshot.
@@ -164,6 +164,8 @@ pub struct ServerState {
 pub struct ReportResult {
     pub applied: bool,
     pub stage_event: Option<v1::StageEvent>,
+    /// The report closed an EVAL lease (the stop rule may apply).
+    pub eval: bool,
 }
 
 /// Why a report changed nothing.
@@ -213,10 +215,27 @@ impl ServerState {
         state
     }
 
+    /// Ends the run when its evaluations reached `service.stop_at_eval_success` ([`stop`]);
+    /// returns the announcement of the end.
+    pub fn apply_stop_rule(&mut self, cfg: &RunConfig) -> Option<v1::StageEvent> {
+        let needed = rfcl_core::config::episodes_per_eval(cfg);
+        if !stop::reached(&self.stats.evals, needed, cfg.service.stop_at_eval_success) {
+            return None;
+        }
+        let change = self.curriculum.finish(self.stats.env_steps)?;
+        tracing::info!(
+            env_steps = change.env_steps,
+            bar = cfg.service.stop_at_eval_success,
+            "the last {} evaluations reached service.stop_at_eval_success: the run is finished",
+            stop::STOP_WINDOW
+        );
+        Some(self.stage_event())
+    }
+
     pub fn stage_event(&self) -> v1::StageEvent {
         let stages = self.curriculum.stages();
         v1::StageEvent {
-            stage: stage_number(stages.stage()),
+            stage: stages.number(),
             stage_epoch: stages.epoch(),
             at_env_steps: stages.stage_1_end_env_steps().unwrap_or(0),
             finished: stages.stage() == Stage::Finished,
@@ -233,7 +252,10 @@ impl ServerState {
     ) -> Result<ResetLease, CurriculumError> {
         self.stats.actors.entry(req.actor_id).or_default().last_seen = now;
         let epoch = self.curriculum.stages().epoch();
-        let stage = stage_number(self.curriculum.stages().stage());
+        let stage = self.curriculum.stages().number();
+        if self.curriculum.stages().stage() == Stage::Finished {
+            return Err(CurriculumError::Finished);
+        }
         if req.eval {
             let seed = cfg.eval_env.seed_offset + self.stats.next_eval_seed;
             self.stats.next_eval_seed += 1;
@@ -332,6 +354,7 @@ impl ServerState {
                 return Ok(ReportResult {
                     applied: true,
                     stage_event: None,
+                    eval: true,
                 });
             }
             Granted::Train(a) => a,
@@ -365,6 +388,7 @@ impl ServerState {
         Ok(ReportResult {
             applied: true,
             stage_event: applied.stage_change.map(|_| self.stage_event()),
+            eval: false,
         })
     }
 
@@ -379,7 +403,7 @@ impl ServerState {
         let point = ProgressPoint {
             wall_s: now - self.stats.started_at,
             env_steps: self.stats.env_steps,
-            stage: stage_number(self.curriculum.stages().stage()),
+            stage: self.curriculum.stages().number(),
             start_step_frac_avg: reverse.start_step_frac_avg(),
             solved_frac: reverse.solved_frac(),
             train_success_rate: self.train_success_rate(),
@@ -535,7 +559,8 @@ impl ServerState {
         DashboardView {
             run_name: run_name.to_string(),
             env_id: env_id.to_string(),
-            stage: stage_number(stages.stage()),
+            stage: stages.number(),
+            finished: stages.stage() == Stage::Finished,
             stage_epoch: stages.epoch(),
             env_steps: self.stats.env_steps,
             stage_1_env_steps: stages.stage_1_end_env_steps(),
@@ -561,14 +586,6 @@ impl ServerState {
             history: self.stats.history.clone(),
             maze: None,
         }
-    }
-}
-
-/// Stage number on the wire: 1 (reverse; also after it finished under stage_1_only), 2 (forward).
-pub fn stage_number(stage: Stage) -> u32 {
-    match stage {
-        Stage::Reverse | Stage::Finished => 1,
-        Stage::Forward => 2,
     }
 }
 
@@ -638,9 +655,17 @@ impl CurriculumService {
                 Err(ReportError::Refused(ReportRefusal::Duplicate(_))) => Ok(ReportResult {
                     applied: false,
                     stage_event: None,
+                    eval: false,
                 }),
                 Err(e) => Err(e),
             };
+            let result = result.map(|r| match r.eval {
+                true => ReportResult {
+                    stage_event: state.apply_stop_rule(&self.shared.cfg),
+                    ..r
+                },
+                false => r,
+            });
             let lease = match (&result, next) {
                 (Ok(_), Some(req)) => {
                     Some(state.acquire(req, &self.shared.cfg, &self.shared.demos, now))

@@ -12,7 +12,8 @@ pub enum Stage {
     Reverse,
     /// Stage 2: resets to levels (spec 3).
     Forward,
-    /// Stage 1 ended under `stage_1_only`: nothing more to hand out.
+    /// The run is over (stage 1 ended under `stage_1_only`, or the evaluations reached
+    /// `service.stop_at_eval_success`): nothing more to hand out.
     Finished,
 }
 
@@ -33,6 +34,9 @@ pub struct StageMachine {
     epoch: u64,
     stage_1_only: bool,
     stage_1_end_env_steps: Option<u64>,
+    /// The stage the run finished in (absent from older snapshots: stage 1).
+    #[serde(default)]
+    finished_in: Option<Stage>,
 }
 
 impl StageMachine {
@@ -53,11 +57,39 @@ impl StageMachine {
             epoch: 0,
             stage_1_only: train.stage_1_only,
             stage_1_end_env_steps,
+            finished_in: None,
         })
     }
 
     pub fn stage(&self) -> Stage {
         self.stage
+    }
+
+    /// The stage number on the wire and the dashboard: 1 (reverse) or 2 (forward); a finished run
+    /// keeps the number of the stage it finished in.
+    pub fn number(&self) -> u32 {
+        match self.finished_in.unwrap_or(self.stage) {
+            Stage::Forward => 2,
+            Stage::Reverse | Stage::Finished => 1,
+        }
+    }
+
+    /// Ends the run at `env_steps`, in whichever stage it is (the stop rule). Does nothing when it
+    /// is already over.
+    pub fn finish(&mut self, env_steps: u64) -> Option<StageChange> {
+        if self.stage == Stage::Finished {
+            return None;
+        }
+        let from = self.stage;
+        self.finished_in = Some(from);
+        self.stage = Stage::Finished;
+        self.epoch += 1;
+        Some(StageChange {
+            from,
+            to: Stage::Finished,
+            epoch: self.epoch,
+            env_steps,
+        })
     }
 
     /// Increases by one on every stage change; starts at 0.
@@ -84,6 +116,9 @@ impl StageMachine {
         self.stage = to;
         self.epoch += 1;
         self.stage_1_end_env_steps = Some(env_steps);
+        if to == Stage::Finished {
+            self.finished_in = Some(Stage::Reverse);
+        }
         Some(StageChange {
             from: Stage::Reverse,
             to,
@@ -114,6 +149,28 @@ mod tests {
         assert_eq!(stages.end_stage_1(2000), None);
         assert_eq!((stages.stage(), stages.epoch()), (Stage::Forward, 1));
         assert_eq!(stages.stage_1_end_env_steps(), Some(1234));
+    }
+
+    #[test]
+    fn the_stop_rule_finishes_the_run_in_either_stage() {
+        let mut stages = StageMachine::new(&TrainConfig::default()).unwrap();
+        let change = stages.finish(900).unwrap();
+        assert_eq!(
+            (change.from, change.to, change.epoch),
+            (Stage::Reverse, Stage::Finished, 1)
+        );
+        assert_eq!((stages.number(), stages.stage_1_end_env_steps()), (1, None));
+        assert_eq!(stages.finish(950), None);
+
+        let mut stages = StageMachine::new(&TrainConfig::default()).unwrap();
+        stages.end_stage_1(500);
+        assert_eq!(stages.number(), 2);
+        assert_eq!(
+            stages.finish(900).map(|c| (c.from, c.epoch)),
+            Some((Stage::Forward, 2))
+        );
+        assert_eq!((stages.stage(), stages.number()), (Stage::Finished, 2));
+        assert_eq!(stages.end_stage_1(1000), None);
     }
 
     #[test]

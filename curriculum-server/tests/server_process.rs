@@ -515,3 +515,78 @@ async fn with_a_certificate_the_server_speaks_tls_only() {
 fn authenticated_test(channel: tonic::transport::Channel) -> rfcl_proto::auth::AuthChannel {
     rfcl_proto::auth::authenticated(channel, &test_token())
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_run_finishes_when_the_last_five_evals_reach_the_bar() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 30.0);
+    let run_dir = dir.path().join("run");
+    // 1 eval env × 100 steps / horizon 100 = 1 episode, raised to 10 per evaluation.
+    let server = ServerProcess::start(&[
+        "--demos",
+        demos.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--run-dir",
+        run_dir.to_str().unwrap(),
+        "service.stop_at_eval_success=0.85",
+        "eval_env.num_envs=1",
+        "sac.eval_steps=100",
+    ]);
+    let mut client = server.client().await;
+    let mut stages = client
+        .watch_stage(v1::WatchStageRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    let first = stages.message().await.unwrap().unwrap();
+    assert_eq!(
+        (first.stage, first.stage_epoch, first.finished),
+        (1, 0, false)
+    );
+
+    let eval_req = v1::AcquireRequest {
+        actor_id: 9,
+        env_index: 0,
+        eval: true,
+    };
+    // Evals of versions 1..=5 at 1k..5k env steps: 8, 10, 9, 8, 9 of 10 successes. The running
+    // mean of the five is 0.88 >= 0.85, reached with the fiftieth episode and not before.
+    let successes = [8, 10, 9, 8, 9];
+    for (v, wins) in successes.into_iter().enumerate() {
+        let version = v as u64 + 1;
+        for episode in 0..10 {
+            let lease = client.acquire(eval_req).await.unwrap().into_inner();
+            let report = v1::EpisodeReport {
+                success_at_end: episode < wins,
+                success_once: episode < wins,
+                policy_version: version,
+                policy_env_steps: 1000 * version,
+                actor_id: 9,
+                ..report_for(&lease, false, 0.0)
+            };
+            let ack = client.report(report).await.unwrap().into_inner();
+            let last = version == 5 && episode == 9;
+            assert_eq!(
+                ack.stage_epoch,
+                u64::from(last),
+                "version {version} episode {episode}"
+            );
+        }
+    }
+    let end = stages.message().await.unwrap().unwrap();
+    assert_eq!((end.stage, end.stage_epoch, end.finished), (1, 1, true));
+    let view = state_view(&mut client).await;
+    assert!(view.finished);
+    // Nothing more is handed out, to train or eval actors.
+    for req in [acquire_req(0), eval_req] {
+        let status = client.acquire(req).await.unwrap_err();
+        assert_eq!(status.code(), tonic::Code::FailedPrecondition);
+        assert!(
+            status.message().contains("stop_at_eval_success"),
+            "{}",
+            status.message()
+        );
+    }
+}

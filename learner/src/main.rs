@@ -295,6 +295,9 @@ async fn run(args: Args) -> Result<()> {
             let mut stopped = stopping_rx.clone();
             let metrics = trainer.metrics();
             metrics.add_collector(counters.clone());
+            metrics.add_collector(std::sync::Arc::new(rfcl_learner::prom::Unauthenticated(
+                server_auth.guard.clone(),
+            )));
             tokio::spawn(rfcl_learner::prom::serve(listener, metrics, async move {
                 let _ = stopped.wait_for(|s| *s).await;
             }));

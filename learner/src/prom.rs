@@ -360,6 +360,22 @@ impl Collector for crate::ingest::IngestCounters {
     }
 }
 
+/// The gRPC service's token check on `/metrics`: `rfcl_learner_unauthenticated_calls_total`.
+/// Register with `metrics.add_collector(Arc::new(Unauthenticated(guard.clone())))`.
+#[derive(Debug)]
+pub struct Unauthenticated(pub rfcl_proto::auth::Guard);
+
+impl Collector for Unauthenticated {
+    fn encode(&self, mut e: DescriptorEncoder) -> std::fmt::Result {
+        counter(
+            &mut e,
+            "unauthenticated_calls",
+            "gRPC calls refused for a missing or wrong run token",
+            self.0.refused(),
+        )
+    }
+}
+
 /// Serves `GET /metrics` on `listener` until `shutdown` resolves.
 pub async fn serve(
     listener: tokio::net::TcpListener,

@@ -237,6 +237,7 @@ impl Learner for LearnerService {
             shm_lost_records: t.shm_lost_records,
             refused_batches: t.refused_batches,
             unauthenticated_calls: self.guard.refused(),
+            run_id: self.info.run_id.clone(),
         }))
     }
 }

@@ -180,6 +180,14 @@ pub struct Guard {
     refused: Arc<AtomicU64>,
 }
 
+impl std::fmt::Debug for Guard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Guard")
+            .field("refused", &self.refused())
+            .finish_non_exhaustive()
+    }
+}
+
 impl Guard {
     pub fn new(token: &Token) -> Self {
         Guard {

@@ -524,7 +524,7 @@ impl Session {
                     let tail = learner.log_tail();
                     self.learner = None;
                     if status.success() {
-                        return Ok(Ending::Budget);
+                        return Ok(self.ended_by_itself().await);
                     }
                     bail!("the learner exited ({}){tail}", describe(Some(status)));
                 }
@@ -549,8 +549,21 @@ impl Session {
             if self.actors.iter().filter(|a| !a.eval).all(|a| a.done) {
                 self.bar
                     .println("every actor finished: the curriculum hands out no more leases");
-                return Ok(Ending::Budget);
+                return Ok(self.ended_by_itself().await);
             }
+        }
+    }
+
+    /// Why a run that ended by itself ended: the curriculum server's stop rule (the evals reached
+    /// `service.stop_at_eval_success`), or the budget.
+    async fn ended_by_itself(&mut self) -> Ending {
+        self.poll_state().await;
+        match self
+            .evals
+            .reached(self.prep.cfg.service.stop_at_eval_success)
+        {
+            true => Ending::EvalSuccess,
+            false => Ending::Budget,
         }
     }
 

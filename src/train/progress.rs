@@ -7,8 +7,9 @@ use std::collections::BTreeMap;
 use rfcl_curriculum::dashboard::{DashboardView, EvalPoint};
 use serde::{Deserialize, Serialize};
 
-/// Evals whose running mean decides an early stop (`service.stop_at_eval_success`).
-pub const STOP_WINDOW: usize = 5;
+/// Evals whose running mean decides an early stop (`service.stop_at_eval_success`; the curriculum
+/// server applies the rule).
+pub use rfcl_curriculum::stop::STOP_WINDOW;
 /// Success thresholds reported in the summary.
 pub const THRESHOLDS: [f64; 2] = [0.5, 0.9];
 
@@ -118,14 +119,8 @@ impl EvalTracker {
 
     /// Mean success-at-end of the last [`STOP_WINDOW`] complete evals, once there are that many.
     pub fn running_mean(&self) -> Option<f64> {
-        let evals = self.evals();
-        (evals.len() >= STOP_WINDOW).then(|| {
-            evals[evals.len() - STOP_WINDOW..]
-                .iter()
-                .map(|e| e.success_at_end)
-                .sum::<f64>()
-                / STOP_WINDOW as f64
-        })
+        let rates: Vec<f64> = self.evals().iter().map(|e| e.success_at_end).collect();
+        rfcl_curriculum::stop::running_mean(&rates)
     }
 
     /// Wilson 95 % interval of the success-at-end rate over the episodes of the last

@@ -376,6 +376,18 @@ pub enum Parallelism {
     Ops,
 }
 
+/// Episodes one evaluation runs over all eval actors: `eval_env.num_envs × eval_steps / horizon`
+/// (the reference's eval envs × steps per env, in whole episodes), at least 10 (spec 5.7's
+/// smallest count). The horizon is the eval env's, else the training env's.
+pub fn episodes_per_eval(cfg: &RunConfig) -> u64 {
+    let horizon = cfg
+        .eval_env
+        .max_episode_steps
+        .unwrap_or(cfg.env.max_episode_steps)
+        .max(1);
+    (u64::from(cfg.eval_env.num_envs) * cfg.sac.eval_steps / u64::from(horizon)).max(10)
+}
+
 impl LearnerConfig {
     /// The learner's thread count: `flag` (`learner --threads`, `rfcl train --learner-threads`)
     /// when given, else `learner.threads`, else `cores - 1`, at least 1.

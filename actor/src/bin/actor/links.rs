@@ -132,6 +132,24 @@ impl Curriculum {
         })
     }
 
+    /// Whether the curriculum server says the run is over (its current stage announcement);
+    /// false when it cannot say within a few seconds.
+    pub async fn finished(&self) -> bool {
+        let mut c = self.client.clone();
+        let first = async move {
+            let mut stream = c
+                .watch_stage(v1::WatchStageRequest {})
+                .await
+                .ok()?
+                .into_inner();
+            stream.message().await.ok().flatten()
+        };
+        matches!(
+            tokio::time::timeout(Duration::from_secs(5), first).await,
+            Ok(Some(event)) if event.finished
+        )
+    }
+
     /// A reset lease, or `None` once the curriculum has finished (stage 1 only, spec 2.7).
     pub async fn acquire(&self, req: AcquireRequest) -> Result<Option<ResetLease>> {
         let wire = v1::AcquireRequest::from(req);
@@ -280,7 +298,7 @@ impl Learner {
     /// Returns an error once the learner has been unreachable for `retry_for` (checked with
     /// Health every `every`). Over shared memory nothing else notices a dead learner: a gRPC
     /// actor's policy stream does.
-    pub async fn watch_alive(&self, every: Duration) -> Result<()> {
+    pub async fn watch_alive(&self, every: Duration, run_id: &str) -> Result<()> {
         loop {
             tokio::time::sleep(every).await;
             let result = retrying(&self.peer, "Health", self.retry_for, || {
@@ -288,8 +306,19 @@ impl Learner {
                 async move { c.health(v1::HealthRequest {}).await }
             })
             .await?;
-            if let Err(status) = result {
-                bail!("Health refused by the {}: {}", self.peer, status.message());
+            let health = match result {
+                Ok(reply) => reply.into_inner(),
+                Err(status) => bail!("Health refused by the {}: {}", self.peer, status.message()),
+            };
+            // A restarted learner serves new shared-memory services: this actor's ports lead to
+            // the old ones, which nobody reads any more.
+            if health.run_id != run_id {
+                bail!(
+                    "the {} restarted (session {run_id} is now {}): its shared-memory services \
+                     are new, so this actor stops to be started again on them",
+                    self.peer,
+                    health.run_id
+                );
             }
         }
     }

@@ -146,8 +146,9 @@ pub async fn run(
             shm::start_policy_follower(policy, policy_tx, stop.0.clone())?;
             // Nothing else would notice a dead learner: check it is there.
             let learner = learner.clone();
+            let run_id = info.run_id.clone();
             (
-                Box::pin(async move { learner.watch_alive(Duration::from_secs(2)).await }),
+                Box::pin(async move { learner.watch_alive(Duration::from_secs(2), &run_id).await }),
                 Some(publisher),
             )
         }
@@ -166,11 +167,12 @@ pub async fn run(
         // Eval actors send no transitions.
         drop(publisher);
         let work = eval_loop(&run, rollout, policy_rx);
-        tokio::select! {
+        let stopped = tokio::select! {
             r = work => r,
             r = &mut watcher => Err(r.err().unwrap_or_else(|| anyhow::anyhow!("the policy watch ended"))),
             _ = &mut shutdown => Ok(Stopped::Signal),
-        }
+        };
+        unless_finished(&run, stopped).await
     } else {
         let counters = Arc::new(PushCounters::default());
         // Small: with the push stream's acknowledged windows, this bounds how far the actor runs
@@ -211,6 +213,7 @@ pub async fn run(
                 _ = &mut shutdown => Ok(Stopped::Signal),
             }
         };
+        let stopped = unless_finished(&run, stopped).await;
         // Flush what is ready (best effort, bounded) and account for the rest.
         let unsent = train.pending.len();
         drop(train.batch_tx);
@@ -232,6 +235,18 @@ pub async fn run(
             "actor stopping"
         );
         stopped
+    }
+}
+
+/// An error that came from losing the learner is the run's normal end when the curriculum
+/// server (still up) says the run is finished: the learner stops once the run is over.
+async fn unless_finished(run: &Run, stopped: Result<Stopped>) -> Result<Stopped> {
+    match stopped {
+        Err(e) if run.curriculum.finished().await => {
+            tracing::info!("the run is finished (the curriculum server says so): {e:#}");
+            Ok(Stopped::CurriculumFinished)
+        }
+        other => other,
     }
 }
 
