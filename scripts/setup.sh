@@ -66,7 +66,7 @@ if [ $PYTHON = 1 ]; then
     "$VENV/bin/pip" install -q --upgrade pip
     "$VENV/bin/pip" install -q torch==2.11.0 || fail "pip install torch==2.11.0"
   fi
-  if "$VENV/bin/python" -c "import mani_skill, metaworld, gymnasium_robotics, h5py, pytest, tensorboard" 2>/dev/null; then
+  if "$VENV/bin/python" -c "import mani_skill, metaworld, gymnasium_robotics, h5py, pytest, tensorboard, kubernetes_validate" 2>/dev/null; then
     step "simulators (mani_skill, metaworld, gymnasium-robotics, h5py), tensorboard: present"
   else
     step "simulators: installing the pinned matrix from python/requirements.txt"
