@@ -165,9 +165,7 @@ pub async fn serve(
     let curriculum = CurriculumServer::new(CurriculumService {
         shared: shared.clone(),
     });
-    let grpc = auth
-        .server()
-        .context("configuring TLS")?
+    let grpc = rfcl_proto::link::server(auth.server().context("configuring TLS")?)
         .add_service(health)
         .add_service(InterceptedService::new(curriculum, auth.guard.clone()))
         .serve_with_incoming_shutdown(

@@ -256,7 +256,7 @@ pub async fn serve(
         <LearnerServer<LearnerService> as NamedService>::NAME,
     )
     .await;
-    auth.server()?
+    rfcl_proto::link::server(auth.server()?)
         .tcp_nodelay(true)
         .initial_stream_window_size(STREAM_WINDOW_BYTES)
         .initial_connection_window_size(CONNECTION_WINDOW_BYTES)

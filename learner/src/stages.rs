@@ -44,7 +44,7 @@ pub async fn open(
 ) -> Result<(Streaming<v1::StageEvent>, v1::StageEvent), StageWatchError> {
     let attempt = async {
         let endpoint = Endpoint::from_shared(addr.to_string())
-            .and_then(|e| auth.endpoint(e.connect_timeout(timeout)))
+            .and_then(|e| auth.endpoint(rfcl_proto::link::client(e.connect_timeout(timeout))))
             .map_err(|source| StageWatchError::Address {
                 addr: addr.into(),
                 source,

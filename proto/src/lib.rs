@@ -8,6 +8,7 @@
 pub mod auth;
 pub mod convert;
 pub mod health;
+pub mod link;
 
 pub mod v1 {
     tonic::include_proto!("rfcl.v1");

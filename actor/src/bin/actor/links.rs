@@ -35,10 +35,11 @@ pub fn normalize_addr(addr: &str) -> String {
 /// call after an outage tries again.
 pub fn channel(addr: &str, auth: &ClientAuth, unary_timeout: bool) -> Result<AuthChannel> {
     let uri = normalize_addr(addr);
-    let mut endpoint = Endpoint::from_shared(uri.clone())
+    let endpoint = Endpoint::from_shared(uri.clone())
         .with_context(|| format!("invalid address {addr:?}"))?
         .connect_timeout(Duration::from_secs(3))
         .tcp_nodelay(true);
+    let mut endpoint = rfcl_proto::link::client(endpoint);
     if unary_timeout {
         endpoint = endpoint.timeout(CALL_TIMEOUT);
     }
