@@ -21,10 +21,8 @@ export RFCL_DASHBOARD_BIND=127.0.0.1 RFCL_DASHBOARD_PORT=18080 RFCL_GRPC_BIND=12
   RFCL_CURRICULUM_PORT=15051 RFCL_LEARNER_PORT=15052 RFCL_METRICS_PORT=19090 \
   RFCL_TOKEN_PATH=$TMP/secrets/rfcl_token RFCL_ACTORS=2 RFCL_EVAL_ACTORS=1
 DC=(docker compose -p "$P" -f deploy/docker-compose.yml)
-passed=0; failed=0
-ok() { printf 'ok   %s\n' "$*"; passed=$((passed + 1)); }
-bad() { printf 'FAIL %s\n' "$*"; failed=$((failed + 1)); }
-step() { printf '==> %s\n' "$*"; }
+# shellcheck source=deploy/test/checks.sh
+. deploy/test/checks.sh
 cleanup() {
   if [ $failed -gt 0 ]; then
     step "logs (last 15 lines per service)"
@@ -34,16 +32,6 @@ cleanup() {
   rm -rf "$TMP"
 }
 trap cleanup EXIT
-# wait_for SECONDS DESCRIPTION COMMAND...: polls every 2 s.
-wait_for() {
-  local limit=$1 what=$2; shift 2
-  local t0=$SECONDS
-  while [ $((SECONDS - t0)) -lt "$limit" ]; do
-    if "$@" >/dev/null 2>&1; then ok "$what ($((SECONDS - t0)) s)"; return 0; fi
-    sleep 2
-  done
-  bad "$what (not within $limit s)"; return 1
-}
 env_steps() {
   curl -fsS "http://127.0.0.1:$RFCL_DASHBOARD_PORT/api/state" 2>/dev/null \
     | python3 -c 'import json,sys; s=json.load(sys.stdin); print(int(s["env_steps"]))' 2>/dev/null

@@ -37,10 +37,8 @@ export RFCL_TEST_NETWORK=${P}_default RFCL_LEARNER=learner:50052 \
   RFCL_ACTOR_ARGS="--retry-for 120" RFCL_EVAL_ACTOR_ARGS="--retry-for 120"
 SERVERS=(docker compose -p "$P" -f deploy/docker-compose.yml)
 ACTORS=(docker compose -p "$PA" -f deploy/docker-compose.remote.yml -f deploy/test/actors-on-network.yml)
-passed=0; failed=0
-ok() { printf 'ok   %s\n' "$*"; passed=$((passed + 1)); }
-bad() { printf 'FAIL %s\n' "$*"; failed=$((failed + 1)); }
-step() { printf '==> %s\n' "$*"; }
+# shellcheck source=deploy/test/checks.sh
+. deploy/test/checks.sh
 cleanup() {
   if [ $failed -gt 0 ]; then
     step "logs (last 20 lines per service)"
@@ -54,16 +52,6 @@ cleanup() {
   rm -rf "$TMP"
 }
 trap cleanup EXIT
-# wait_for SECONDS DESCRIPTION COMMAND...: polls every 2 s.
-wait_for() {
-  local limit=$1 what=$2; shift 2
-  local t0=$SECONDS
-  while [ $((SECONDS - t0)) -lt "$limit" ]; do
-    if "$@" >/dev/null 2>&1; then ok "$what ($((SECONDS - t0)) s)"; return 0; fi
-    sleep 2
-  done
-  bad "$what (not within $limit s)"; return 1
-}
 # state FIELD: a number (or true/false) from the dashboard's /api/state, e.g. state env_steps,
 # state refused_reports.expired.
 state() {
