@@ -139,9 +139,12 @@ async fn run(args: Args) -> Result<()> {
         .unwrap_or_else(|| PathBuf::from("runs").join(&cfg.name));
     // A learner that finds its own checkpoint in its run directory continues it (a restarted
     // container, a supervisor's restart): the run goes on without anyone passing --resume.
+    // (An explicit --run-dir or --resume was read above, before the config.)
     let manifest = match manifest {
-        Some(m) => Some(m),
-        None => checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))?,
+        None if args.run_dir.is_none() && args.resume.is_none() => {
+            checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))?
+        }
+        m => m,
     };
     if args.resume.is_none() {
         if let Some(m) = &manifest {
