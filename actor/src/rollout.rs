@@ -31,19 +31,19 @@ use crate::policy::{explores_uniformly, uniform_action, PolicyHandle};
 /// condition.
 #[derive(Debug, thiserror::Error)]
 pub enum RolloutError {
-    #[error("env {env}: lease {lease_id} ({kind:?}) could not reset the env: {source}")]
+    #[error("env {env}: lease {lease_id} ({kind:?}) could not reset the env: {error}")]
     Reset {
         env: usize,
         lease_id: u64,
         kind: LeaseKind,
-        source: EnvError,
+        error: EnvError,
     },
-    #[error("env {env}: step {step} of lease {lease_id} failed: {source}")]
+    #[error("env {env}: step {step} of lease {lease_id} failed: {error}")]
     Step {
         env: usize,
         lease_id: u64,
         step: u32,
-        source: EnvError,
+        error: EnvError,
     },
     #[error("env {env} already runs lease {running}; it cannot begin lease {offered}")]
     Busy {
@@ -273,11 +273,11 @@ impl Rollout {
             slot.env
                 .reset_to_state(lease.reset.seed, &lease.reset.options, &lease.env_state)
         };
-        let obs = reset.map_err(|source| RolloutError::Reset {
+        let obs = reset.map_err(|error| RolloutError::Reset {
             env,
             lease_id: lease.lease_id,
             kind: lease.kind,
-            source,
+            error,
         })?;
         slot.episode = Some(Episode {
             lease,
@@ -342,11 +342,11 @@ impl Rollout {
             let outcome = slot
                 .env
                 .step(env_act)
-                .map_err(|source| RolloutError::Step {
+                .map_err(|error| RolloutError::Step {
                     env: index,
                     lease_id: episode.lease.lease_id,
                     step: episode.length,
-                    source,
+                    error,
                 })?;
             let reward = if outcome.success { 1.0f32 } else { 0.0 };
             episode.length += 1;

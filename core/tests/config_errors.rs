@@ -273,6 +273,9 @@ fn a_missing_file_is_a_read_error() {
             .starts_with("/nonexistent/config.yml: cannot read: "),
         "{error}"
     );
+    // The OS error is in the message, so it is not also the source: a chain printed with
+    // `{:#}` names it once.
+    assert!(std::error::Error::source(&error).is_none());
 }
 
 #[test]
@@ -282,7 +285,7 @@ fn malformed_files_and_overrides_are_explained() {
         (
             "- 1\n- 2\n",
             &[],
-            "expected a mapping of sections at the top level, got [1,2]",
+            "expected a YAML mapping of sections at the top level (env:, sac:, ...), got a list",
         ),
         (
             "base_config: {a: 1}\n",
@@ -314,4 +317,20 @@ fn malformed_files_and_overrides_are_explained() {
         "{message}"
     );
     assert!(!message.contains("DuplicateKeyPolicy"), "{message}");
+}
+
+#[test]
+fn a_base_config_that_is_not_yaml_is_named_by_kind_not_echoed() {
+    let dir = tempfile::tempdir().unwrap();
+    let notes = dir.path().join("notes.txt");
+    // Plain prose parses as a YAML string: the error names its kind, not its content.
+    std::fs::write(&notes, "my private notes, the key is hunter2 and more text\n").unwrap();
+    let run = dir.path().join("run.yml");
+    std::fs::write(&run, "base_config: notes.txt\n").unwrap();
+    let err = resolve_file(&run, &[]).unwrap_err().to_string();
+    assert!(!err.contains("hunter2"), "the file's content is echoed: {err}");
+    assert!(
+        err.contains("notes.txt") && err.contains("expected a YAML mapping") && err.contains("got a string"),
+        "{err}"
+    );
 }

@@ -570,6 +570,62 @@ fn missing_file() {
 }
 
 #[test]
+fn a_directory_given_as_the_demo_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("demos.h5");
+    std::fs::create_dir(&path).unwrap();
+    let err = load_err(&path);
+    assert!(matches!(err, DemoError::IsDirectory { .. }), "{err}");
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "{}: is a directory; expected an HDF5 demo file (a ManiSkill trajectory .h5)",
+            path.display()
+        )
+    );
+}
+
+/// Replaces `name` (shape `shape`) with values that are finite except `value` at flat index `at`.
+fn poison_f32(file: &hdf5::File, name: &str, shape: &[usize], at: usize, value: f32) {
+    let ds = file.dataset(name).unwrap();
+    let mut data = ds.read_raw::<f32>().unwrap();
+    assert_eq!(data.len(), shape.iter().product::<usize>());
+    data[at] = value;
+    ds.write_raw(&data[..]).unwrap();
+}
+
+#[test]
+fn nan_in_observations_names_episode_step_and_column() {
+    // traj_2 obs is [8, OBS]: flat index 3 * OBS + 4 is step 3, column 4.
+    let (_dir, path) = broken(|f| poison_f32(f, "traj_2/obs", &[8, OBS], 3 * OBS + 4, f32::NAN));
+    let err = load_err(&path);
+    assert!(matches!(err, DemoError::NonFinite { .. }), "{err}");
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "{}: traj_2/obs has NaN at step 3, column 4: demos must hold finite numbers",
+            path.display()
+        )
+    );
+}
+
+#[test]
+fn infinity_in_env_states_and_actions_is_refused() {
+    let (_dir, path) = broken(|f| {
+        poison_f32(f, "traj_0/env_states/actors/cube", &[7, 13], 13 + 2, f32::INFINITY)
+    });
+    let err = load_err(&path).to_string();
+    assert!(
+        err.contains("traj_0/env_states/actors/cube has inf at step 1, column 2"),
+        "{err}"
+    );
+    let (_dir, path) =
+        broken(|f| poison_f32(f, "traj_3/actions", &[4, ACT], 0, f32::NEG_INFINITY));
+    let err = load_err(&path).to_string();
+    assert!(err.contains("traj_3/actions has -inf at step 0, column 0"), "{err}");
+}
+
+#[test]
 fn text_file_renamed_h5() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("demos.h5");

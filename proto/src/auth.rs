@@ -48,11 +48,10 @@ pub enum AuthError {
     Missing,
     #[error("both {TOKEN_ENV} and {TOKEN_FILE_ENV} are set: keep one")]
     Both,
-    #[error("reading the run token from {path} ({TOKEN_FILE_ENV}): {source}")]
+    #[error("reading the run token from {path} ({TOKEN_FILE_ENV}): {error}")]
     Read {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error(
         "the run token {origin} is not usable: {problem} (expected at least {MIN_TOKEN_CHARS} \
@@ -66,12 +65,11 @@ pub enum AuthError {
         var: &'static str,
         missing: &'static str,
     },
-    #[error("TLS: reading {path} ({var}): {source}")]
+    #[error("TLS: reading {path} ({var}): {error}")]
     TlsRead {
         var: &'static str,
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
 }
 
@@ -129,9 +127,9 @@ impl Token {
 
     /// Reads a token file (a trailing newline is fine).
     pub fn read_file(path: &Path) -> Result<Token, AuthError> {
-        let raw = std::fs::read_to_string(path).map_err(|source| AuthError::Read {
+        let raw = std::fs::read_to_string(path).map_err(|error| AuthError::Read {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
         Token::parse(&raw, &format!("in {}", path.display()))
     }
@@ -343,10 +341,10 @@ fn client_tls(ca: &Path) -> Result<ClientTlsConfig, AuthError> {
 }
 
 fn read_pem(var: &'static str, path: &Path) -> Result<Vec<u8>, AuthError> {
-    std::fs::read(path).map_err(|source| AuthError::TlsRead {
+    std::fs::read(path).map_err(|error| AuthError::TlsRead {
         var,
         path: path.to_path_buf(),
-        source,
+        error,
     })
 }
 

@@ -62,11 +62,10 @@ pub enum ShmError {
         service: String,
         problem: String,
     },
-    #[error("shared memory: a frame on the iceoryx2 service '{service}': {source}")]
+    #[error("shared memory: a frame on the iceoryx2 service '{service}': {error}")]
     Frame {
         service: String,
-        #[source]
-        source: FrameError,
+        error: FrameError,
     },
 }
 

@@ -38,10 +38,10 @@ impl fmt::Display for DidYouMean {
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     /// A config file could not be read.
-    #[error("{}: cannot read: {source}", path.display())]
+    #[error("{}: cannot read: {error}", path.display())]
     Read {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A file or an override value is not valid YAML.
     #[error("{origin}: invalid YAML: {message}")]

@@ -81,9 +81,9 @@ fn load(
     layers: &mut Vec<Layer>,
 ) -> Result<(), ConfigError> {
     let shown = normalize(path);
-    let read_error = |source| ConfigError::Read {
+    let read_error = |error| ConfigError::Read {
         path: shown.clone(),
-        source,
+        error,
     };
     let canonical = fs::canonicalize(path).map_err(read_error)?;
     if chain.iter().any(|(seen, _)| *seen == canonical) {
@@ -103,7 +103,11 @@ fn load(
     if !tree.is_object() {
         return Err(ConfigError::Malformed {
             origin,
-            message: format!("expected a mapping of sections at the top level, got {tree}"),
+            // Name the kind, never the content: a mistaken base_config may point at anything.
+            message: format!(
+                "expected a YAML mapping of sections at the top level (env:, sac:, ...), got {}",
+                json_kind(&tree)
+            ),
         });
     }
     let bases = take_bases(&mut tree, &origin)?;
@@ -342,5 +346,17 @@ mod tests {
             "command-line override 'x': sac.utd_mode: unknown value \"asynch\", expected one of: \
              sync, async (did you mean 'async'?)"
         );
+    }
+}
+
+/// What a parsed YAML document is, in words ("a string", "a list", ...).
+fn json_kind(value: &Value) -> &'static str {
+    match value {
+        Value::Null => "nothing",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "a list",
+        Value::Object(_) => "a mapping",
     }
 }

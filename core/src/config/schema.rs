@@ -150,6 +150,9 @@ pub struct SacConfig {
     pub log_freq: u64,
     /// Checkpoint every this many env steps.
     pub save_freq: u64,
+    /// Checkpoint also when this many seconds of wall time have passed since the last one, so a
+    /// learner that dies is never far from a checkpoint (only the replay's new rows are written).
+    pub save_every_s: f64,
     pub utd_mode: UtdMode,
     /// Where the learner runs the SAC maths.
     pub device: Device,
@@ -339,6 +342,12 @@ pub struct ServiceConfig {
     pub lease_timeout_s: f64,
     /// Curriculum snapshot every this many reports (and on shutdown).
     pub snapshot_every_reports: u64,
+    /// Curriculum snapshot also when this many seconds have passed since the last one (and there
+    /// were reports since).
+    pub snapshot_every_s: f64,
+    /// An actor that has not called for this many seconds is dropped from the per-actor table
+    /// (counted), so the table stays bounded however many actor ids come and go.
+    pub forget_actors_after_s: f64,
     /// Transitions per shared-memory / gRPC batch.
     pub transition_batch: u32,
     /// Warn when an actor's policy lags the learner's by more than this many versions.
@@ -498,6 +507,7 @@ impl Default for SacConfig {
             eval_steps: 1000,
             log_freq: 1000,
             save_freq: 50_000,
+            save_every_s: 60.0,
             utd_mode: UtdMode::Sync,
             device: Device::Cpu,
             matmul_precision: MatmulPrecision::Fp32,
@@ -586,6 +596,8 @@ impl Default for ServiceConfig {
             transport: Transport::Auto,
             lease_timeout_s: 120.0,
             snapshot_every_reports: 500,
+            snapshot_every_s: 15.0,
+            forget_actors_after_s: 600.0,
             transition_batch: 64,
             max_policy_lag: 50,
             curriculum_port: 0,

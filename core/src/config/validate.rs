@@ -149,7 +149,8 @@ impl RunConfig {
         at_least("sac.eval_freq", sac.eval_freq, 1)?;
         at_least("sac.eval_steps", sac.eval_steps, 1)?;
         at_least("sac.log_freq", sac.log_freq, 1)?;
-        at_least("sac.save_freq", sac.save_freq, 1)
+        at_least("sac.save_freq", sac.save_freq, 1)?;
+        within("sac.save_every_s", sac.save_every_s, POSITIVE)
     }
 
     fn validate_network(&self) -> Result<(), ConfigError> {
@@ -298,6 +299,12 @@ impl RunConfig {
             "service.snapshot_every_reports",
             service.snapshot_every_reports,
             1,
+        )?;
+        within("service.snapshot_every_s", service.snapshot_every_s, POSITIVE)?;
+        within(
+            "service.forget_actors_after_s",
+            service.forget_actors_after_s,
+            POSITIVE,
         )?;
         at_least("service.transition_batch", service.transition_batch, 1)?;
         let ports = [

@@ -75,10 +75,10 @@ pub enum DemoError {
     },
 
     /// Invalid JSON, or JSON of the wrong shape; serde's message carries line and column.
-    #[error("{}: malformed JSON sidecar: {source}", path.display())]
+    #[error("{}: malformed JSON sidecar: {error}", path.display())]
     Sidecar {
         path: PathBuf,
-        source: serde_json::Error,
+        error: serde_json::Error,
     },
 
     /// Any other violation of the format: shapes, layouts, group names, sidecar entries.
@@ -93,10 +93,27 @@ pub enum DemoError {
         message: String,
     },
 
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
+    },
+
+    #[error("{}: is a directory; expected an HDF5 demo file (a ManiSkill trajectory .h5)", path.display())]
+    IsDirectory { path: PathBuf },
+
+    /// NaN or infinity in a dataset: training on it diverges from the first update.
+    #[error(
+        "{}: traj_{episode_id}/{field} has {value} at step {step}, column {column}: demos must hold finite numbers",
+        path.display()
+    )]
+    NonFinite {
+        path: PathBuf,
+        episode_id: u64,
+        field: String,
+        step: usize,
+        column: usize,
+        value: f32,
     },
 }
 

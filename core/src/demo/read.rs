@@ -95,10 +95,15 @@ pub(super) fn load(path: &Path) -> Result<DemoSet, DemoError> {
 
 /// Opens `path` after checking that it exists and carries an HDF5 signature.
 fn open(path: &Path) -> Result<hdf5::File, DemoError> {
-    let io = |source| DemoError::Io {
+    let io = |error| DemoError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     };
+    if path.is_dir() {
+        return Err(DemoError::IsDirectory {
+            path: path.to_path_buf(),
+        });
+    }
     let mut file = match StdFile::open(path) {
         Ok(file) => file,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -400,6 +405,16 @@ impl TrajReader<'_> {
         let data = ds
             .read_raw::<f32>()
             .map_err(|e| self.hdf5("read", shown, e))?;
+        if let Some(i) = data.iter().position(|x| !x.is_finite()) {
+            return Err(DemoError::NonFinite {
+                path: self.path.to_path_buf(),
+                episode_id: self.episode_id,
+                field: shown.to_owned(),
+                step: i / cols.max(1),
+                column: i % cols.max(1),
+                value: data[i],
+            });
+        }
         Ok(Matrix { rows, cols, data })
     }
 

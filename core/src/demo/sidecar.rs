@@ -90,11 +90,11 @@ pub(super) fn read(h5_path: &Path) -> Result<Option<Sidecar>, DemoError> {
     let text = match std::fs::read_to_string(&path) {
         Ok(text) => text,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(source) => return Err(DemoError::Io { path, source }),
+        Err(error) => return Err(DemoError::Io { path, error }),
     };
-    let file: File = serde_json::from_str(&text).map_err(|source| DemoError::Sidecar {
+    let file: File = serde_json::from_str(&text).map_err(|error| DemoError::Sidecar {
         path: path.clone(),
-        source,
+        error,
     })?;
     let first_control_mode = file.episodes.iter().find_map(|e| e.control_mode.clone());
     let mut episodes = HashMap::with_capacity(file.episodes.len());

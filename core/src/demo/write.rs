@@ -21,9 +21,9 @@ pub(super) fn write(set: &DemoSet, path: &Path) -> Result<(), DemoError> {
     let mut json = serde_json::to_string_pretty(&sidecar::to_json(set))
         .expect("a JSON value always serialises");
     json.push('\n');
-    std::fs::write(&json_path, json).map_err(|source| DemoError::Io {
+    std::fs::write(&json_path, json).map_err(|error| DemoError::Io {
         path: json_path,
-        source,
+        error,
     })
 }
 
