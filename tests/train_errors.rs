@@ -1,6 +1,7 @@
 //! `rfcl train` when something is wrong: a clear error and a non-zero exit, and no child process
-//! left behind. Bad input is refused before any process starts; a service that fails at start-up
-//! or dies mid-run stops the run with that service's error.
+//! left behind. Bad input is refused before any process starts; a service that fails at start-up,
+//! or keeps dying mid-run, stops the run with that service's error; Ctrl-C while the services
+//! start stops them.
 mod train_support;
 
 use std::process::Command;
@@ -83,8 +84,27 @@ fn a_service_that_fails_at_start_stops_the_run_with_its_error() {
     assert!(!run_dir.join("processes.json").exists());
 }
 
+/// Processes (other than this test) whose command line names `run_dir`.
+fn processes_of(run_dir: &std::path::Path) -> Vec<(u32, String)> {
+    let needle = run_dir.display().to_string();
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir("/proc").unwrap().flatten() {
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let Ok(raw) = std::fs::read(entry.path().join("cmdline")) else {
+            continue;
+        };
+        let cmdline = String::from_utf8_lossy(&raw).replace('\0', " ");
+        if cmdline.contains(&needle) {
+            found.push((pid, cmdline));
+        }
+    }
+    found
+}
+
 #[test]
-fn a_learner_that_dies_mid_run_stops_the_run_and_every_child() {
+fn ctrl_c_while_the_learner_starts_leaves_no_child_behind() {
     require_services();
     let dir = tempfile::tempdir().unwrap();
     let demos = generate_demos(dir.path());
@@ -99,22 +119,82 @@ fn a_learner_that_dies_mid_run_stops_the_run_and_every_child() {
         &run_dir,
         &dir.path().join("rfcl.stderr"),
     );
-    let processes = training.processes(Duration::from_secs(120));
+    // The learner has been started (its log exists) but the session has not (no processes.json).
     wait_for(Duration::from_secs(120), || {
-        learner_health(&processes).filter(|h| h.env_steps > 1000)
+        run_dir.join("logs/learner.log").exists().then_some(())
     })
-    .unwrap_or_else(|| panic!("the learner never got data:\n{}", training.stderr()));
-    signal(
-        child_pid(&processes, "learner") as u32,
-        rustix::process::Signal::KILL,
+    .unwrap_or_else(|| panic!("the learner was not started:\n{}", training.stderr()));
+    signal(training.pid(), rustix::process::Signal::INT);
+    let status = training.wait(Duration::from_secs(60));
+    assert!(!status.success(), "{}", training.stderr());
+    let left = wait_for(Duration::from_secs(10), || {
+        let left = processes_of(&run_dir);
+        left.is_empty().then_some(())
+    });
+    assert!(
+        left.is_some(),
+        "children outlived rfcl: {:?}\n{}",
+        processes_of(&run_dir),
+        training.stderr()
     );
+}
+
+#[test]
+fn a_learner_that_keeps_dying_stops_the_run_with_a_failed_summary() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let demos = generate_demos(dir.path());
+    let run_dir = dir.path().join("run");
+    let mut training = Training::start(
+        &[
+            test_config().display().to_string(),
+            format!("train.dataset_path={}", demos.display()),
+            "--run-dir".into(),
+            run_dir.display().to_string(),
+        ],
+        &run_dir,
+        &dir.path().join("rfcl.stderr"),
+    );
+    let mut processes = training.processes(Duration::from_secs(120));
+    let mut killed = Vec::new();
+    // Three deaths are restarted; the fourth within the window stops the run.
+    for round in 0..4 {
+        let pid = wait_for(Duration::from_secs(120), || {
+            let p: serde_json::Value = serde_json::from_str(
+                &std::fs::read_to_string(run_dir.join("processes.json")).ok()?,
+            )
+            .ok()?;
+            let pid = child_pid(&p, "learner");
+            if killed.contains(&pid) {
+                return None;
+            }
+            learner_health(&p)?;
+            processes = p;
+            Some(pid)
+        })
+        .unwrap_or_else(|| panic!("no learner in round {round}:\n{}", training.stderr()));
+        signal(pid as u32, rustix::process::Signal::KILL);
+        killed.push(pid);
+    }
     let status = training.wait(Duration::from_secs(120));
     let stderr = training.stderr();
     assert_eq!(status.code(), Some(1), "{stderr}");
     assert!(
-        stderr.contains("error: the learner exited (killed by signal 9)"),
+        stderr.contains("the learner died 4 times within 600 s (last: killed by signal 9)"),
         "{stderr}"
     );
+    assert_eq!(
+        stderr.matches("the learner is back").count(),
+        3,
+        "{stderr}"
+    );
+    let summary = training.summary();
+    assert_eq!(summary["ending"], "failed");
+    assert!(
+        summary["error"].as_str().unwrap().contains("the learner died 4 times"),
+        "{summary}"
+    );
+    assert_eq!(summary["service_restarts"].as_array().unwrap().len(), 3);
     for pid in child_pids(&processes) {
         assert!(!alive(pid), "child {pid} outlived the run");
     }

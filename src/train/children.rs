@@ -87,6 +87,8 @@ impl Launcher {
         if std::env::var_os("RUST_LOG").is_none() {
             cmd.env("RUST_LOG", "info");
         }
+        // Logs are files: no terminal colour codes in them.
+        cmd.env("NO_COLOR", "1");
         cmd.env(auth::TOKEN_ENV, self.token.expose())
             .env_remove(auth::TOKEN_FILE_ENV);
         let mut child = cmd
@@ -209,11 +211,13 @@ impl Child {
     }
 }
 
-/// `"\n  <log> (last lines):\n  ..."`, or nothing when the log is empty or unreadable.
+/// `"\n  <log> (last lines):\n  ..."`, or nothing when the log is empty or unreadable. Terminal
+/// escape codes (colours a child wrote anyway) are taken out.
 pub fn log_tail(path: &Path, lines: usize) -> String {
-    let Ok(text) = std::fs::read_to_string(path) else {
+    let Ok(bytes) = std::fs::read(path) else {
         return String::new();
     };
+    let text = String::from_utf8_lossy(&strip_ansi_escapes::strip(&bytes)).into_owned();
     let all: Vec<&str> = text.lines().collect();
     if all.is_empty() {
         return String::new();
@@ -252,6 +256,13 @@ mod tests {
         let tail = log_tail(&path, 2);
         assert!(tail.ends_with("c\n    d"), "{tail:?}");
         assert!(!tail.contains("    b"));
+        std::fs::write(
+            &path,
+            "\x1b[2m2026-12-02T23:00:00Z\x1b[0m \x1b[31mERROR\x1b[0m learner: boom\n",
+        )
+        .unwrap();
+        let tail = log_tail(&path, 2);
+        assert!(tail.ends_with("2026-12-02T23:00:00Z ERROR learner: boom"), "{tail:?}");
     }
 
     /// The learner (like every child) starts with `OMP_WAIT_POLICY=PASSIVE` unless the user set

@@ -6,12 +6,18 @@
 //!
 //! * a progress bar (env steps / `train.steps`, stage, last eval success, updates/s, ETA) from the
 //!   learner's Health and the curriculum's GetState;
-//! * a dead actor is respawned, and said so; a failing curriculum server or learner stops the run
-//!   with its error (the last lines of its log);
+//! * a dead actor is respawned, and said so; a dead curriculum server or learner (any signal, any
+//!   exit status but the learner's 0) is restarted on its port from its last snapshot or
+//!   checkpoint, after a backoff (1, 2, 4, ... s), and the log, `train_progress.json` and the
+//!   summary say which process, why and what was rolled back; more than
+//!   [`SERVICE_RESTARTS_MAX`] deaths of one service within [`SERVICE_RESTART_WINDOW_S`] stop the
+//!   run with its error (the last lines of its log). The actors and the other service reconnect
+//!   by themselves;
 //! * the run ends when the learner exits after its budget, or when the mean success of the last 5
 //!   evaluations reaches `service.stop_at_eval_success`; Ctrl-C / SIGTERM stops it cleanly, and
 //!   `--resume RUN_DIR` continues it;
-//! * at the end it writes and prints `RUN_DIR/summary.json`.
+//! * at the end it writes and prints `RUN_DIR/summary.json` (also when a failure ends the run:
+//!   `ending: failed` with the `error`).
 //!
 //! Files in the run directory beside the services' own: `config.yml` (resolved), `logs/<child>.log`,
 //! `processes.json` (while a session runs: the services' addresses, every child's name and pid),
@@ -36,8 +42,8 @@ use tonic::transport::Channel;
 
 use children::{describe, find_setpriv, Child, Launcher};
 use progress::{
-    ready_field, split_envs, summarize, CompleteEval, Ending, EvalTracker, LearnerCounters,
-    RespawnLimiter, RunProgress, Summary,
+    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, Ending, EvalTracker,
+    LearnerCounters, RespawnLimiter, RolledBack, RunProgress, ServiceRestart, Summary,
 };
 
 /// How long a service may take to print its ready line (the learner loads demos and may restore
@@ -51,6 +57,9 @@ const PROGRESS_EVERY: u32 = 60;
 const ACTOR_GRACE: Duration = Duration::from_secs(5);
 const LEARNER_GRACE: Duration = Duration::from_secs(120);
 const SERVER_GRACE: Duration = Duration::from_secs(20);
+/// A service that dies more often than this within the window cannot run: the run stops.
+pub const SERVICE_RESTARTS_MAX: usize = 3;
+pub const SERVICE_RESTART_WINDOW_S: f64 = 600.0;
 
 /// What `rfcl train` was asked to do.
 #[derive(Debug, Clone)]
@@ -240,12 +249,70 @@ struct ActorProc {
     done: bool,
 }
 
+/// The two services `rfcl train` restarts when they die.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Service {
+    Curriculum,
+    Learner,
+}
+
+impl Service {
+    /// The child's name, which is also its binary's.
+    fn name(self) -> &'static str {
+        match self {
+            Service::Curriculum => "curriculum-server",
+            Service::Learner => "learner",
+        }
+    }
+
+    fn id(self) -> u32 {
+        self as u32
+    }
+
+    /// What it restarts from.
+    fn saved_state(self) -> &'static str {
+        match self {
+            Service::Curriculum => "snapshot",
+            Service::Learner => "checkpoint",
+        }
+    }
+}
+
+/// Ctrl-C and SIGTERM, installed before the first child starts, so an interrupt at any moment (a
+/// service still starting included) stops the children rather than leaving them behind.
+struct Signals {
+    interrupt: tokio::signal::unix::Signal,
+    terminate: tokio::signal::unix::Signal,
+}
+
+impl Signals {
+    fn install() -> Result<Self> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(Self {
+            interrupt: signal(SignalKind::interrupt()).context("installing SIGINT handler")?,
+            terminate: signal(SignalKind::terminate()).context("installing SIGTERM handler")?,
+        })
+    }
+
+    async fn recv(&mut self) {
+        tokio::select! {
+            _ = self.interrupt.recv() => {}
+            _ = self.terminate.recv() => {}
+        }
+    }
+}
+
 /// The processes of a running session and what is known of them.
 struct Session {
     prep: Prepared,
     launcher: Launcher,
     server: Child,
     learner: Option<Child>,
+    /// How each service is started again: on the port it had, from the run directory (which
+    /// holds its snapshot or checkpoint).
+    server_args: Vec<OsString>,
+    learner_args: Vec<OsString>,
+    service_deaths: RespawnLimiter,
     learner_addr: String,
     curriculum_addr: String,
     dashboard: String,
@@ -289,8 +356,16 @@ async fn train_async(args: TrainArgs) -> Result<Summary> {
         prep.run_dir.display(),
         launcher.log_dir.display()
     );
-    let mut session = Session::start(prep, launcher).await?;
-    let ending = session.supervise().await;
+    let mut signals = Signals::install()?;
+    // Dropping a half-started session kills the children it started (`kill_on_drop`).
+    let mut session = tokio::select! {
+        session = Session::start(prep, launcher) => session?,
+        _ = signals.recv() => bail!(
+            "interrupted while the services were starting: stopped them; nothing was trained in \
+             this session"
+        ),
+    };
+    let ending = session.supervise(&mut signals).await;
     session.finish(ending).await
 }
 
@@ -335,21 +410,27 @@ impl Session {
         let demos = prep.demos.as_os_str().to_owned();
 
         // Curriculum server.
-        let mut args = vec![
-            "--config".into(),
-            config.clone(),
-            "--demos".into(),
-            demos.clone(),
-        ];
-        args.extend(os(&[
-            "--port",
-            &cfg.service.curriculum_port.to_string(),
-            "--dashboard-port",
-            &cfg.service.dashboard_port.to_string(),
-        ]));
-        args.push(if prep.resume { "--resume" } else { "--run-dir" }.into());
-        args.push(run_dir.clone());
-        let mut server = launcher.spawn("curriculum-server", "curriculum-server", args)?;
+        let server_args = |port: &str, dashboard_port: &str, resume: bool| {
+            let mut args = vec![
+                "--config".into(),
+                config.clone(),
+                "--demos".into(),
+                demos.clone(),
+            ];
+            args.extend(os(&["--port", port, "--dashboard-port", dashboard_port]));
+            args.push(if resume { "--resume" } else { "--run-dir" }.into());
+            args.push(run_dir.clone());
+            args
+        };
+        let mut server = launcher.spawn(
+            "curriculum-server",
+            "curriculum-server",
+            server_args(
+                &cfg.service.curriculum_port.to_string(),
+                &cfg.service.dashboard_port.to_string(),
+                prep.resume,
+            ),
+        )?;
         let line = server.ready_line(READY_TIMEOUT).await?;
         let (Some(curriculum_addr), Some(dashboard)) =
             (ready_field(&line, "grpc"), ready_field(&line, "dashboard"))
@@ -357,27 +438,47 @@ impl Session {
             bail!("unexpected ready line from the curriculum server: {line:?}");
         };
         let curriculum_url = format!("http://{curriculum_addr}");
+        // A restarted server resumes from the run directory's snapshot on the same ports, where
+        // the learner and the actors look for it.
+        let server_args = server_args(
+            &port_of(&curriculum_addr)?.to_string(),
+            &port_of(&dashboard)?.to_string(),
+            false,
+        );
 
         // Learner.
-        let mut args = vec!["--config".into(), config, "--demos".into(), demos];
-        args.extend(os(&[
-            "--curriculum",
-            &curriculum_url,
-            "--port",
-            &cfg.service.learner_port.to_string(),
-            "--threads",
-            &prep.learner_threads.to_string(),
-            // Prometheus /metrics on a free port (its URL is on the ready line).
-            "--metrics-port",
-            "0",
-        ]));
-        args.push(if prep.resume { "--resume" } else { "--run-dir" }.into());
-        args.push(run_dir);
-        let mut learner = launcher.spawn("learner", "learner", args)?;
+        let learner_args = |port: &str, resume: bool| {
+            let mut args = vec![
+                "--config".into(),
+                config.clone(),
+                "--demos".into(),
+                demos.clone(),
+            ];
+            args.extend(os(&[
+                "--curriculum",
+                &curriculum_url,
+                "--port",
+                port,
+                "--threads",
+                &prep.learner_threads.to_string(),
+                // Prometheus /metrics on a free port (its URL is on the ready line).
+                "--metrics-port",
+                "0",
+            ]));
+            args.push(if resume { "--resume" } else { "--run-dir" }.into());
+            args.push(run_dir.clone());
+            args
+        };
+        let mut learner = launcher.spawn(
+            "learner",
+            "learner",
+            learner_args(&cfg.service.learner_port.to_string(), prep.resume),
+        )?;
         let line = learner.ready_line(READY_TIMEOUT).await?;
         let Some(learner_addr) = ready_field(&line, "grpc") else {
             bail!("unexpected ready line from the learner: {line:?}");
         };
+        let learner_args = learner_args(&port_of(&learner_addr)?.to_string(), false);
         let learner_url = format!("http://{learner_addr}");
         println!("dashboard: {dashboard}");
         eprintln!("curriculum server at {curriculum_url}, learner at {learner_url}");
@@ -414,6 +515,9 @@ impl Session {
             launcher,
             server,
             learner: Some(learner),
+            server_args,
+            learner_args,
+            service_deaths: RespawnLimiter::new(SERVICE_RESTARTS_MAX, SERVICE_RESTART_WINDOW_S),
             learner_addr: learner_url,
             curriculum_addr: curriculum_url,
             dashboard,
@@ -498,35 +602,29 @@ impl Session {
     }
 
     /// Watches the children and the run's progress until the run ends, fails or is interrupted.
-    async fn supervise(&mut self) -> Result<Ending> {
-        use tokio::signal::unix::{signal, SignalKind};
-        let mut interrupt = signal(SignalKind::interrupt()).context("installing SIGINT handler")?;
-        let mut terminate =
-            signal(SignalKind::terminate()).context("installing SIGTERM handler")?;
+    async fn supervise(&mut self, signals: &mut Signals) -> Result<Ending> {
         let mut tick = tokio::time::interval(POLL_EVERY);
         let mut ticks = 0u32;
         loop {
             tokio::select! {
                 _ = tick.tick() => {}
-                _ = interrupt.recv() => return Ok(Ending::Interrupted),
-                _ = terminate.recv() => return Ok(Ending::Interrupted),
+                _ = signals.recv() => return Ok(Ending::Interrupted),
             }
             ticks += 1;
             if let Some(status) = self.server.try_wait() {
-                bail!(
-                    "the curriculum server exited ({}){}",
-                    describe(Some(status)),
-                    self.server.log_tail()
-                );
+                if let Some(ending) = self.restart(Service::Curriculum, status, signals).await? {
+                    return Ok(ending);
+                }
             }
             if let Some(learner) = self.learner.as_mut() {
                 if let Some(status) = learner.try_wait() {
-                    let tail = learner.log_tail();
-                    self.learner = None;
                     if status.success() {
+                        self.learner = None;
                         return Ok(self.ended_by_itself().await);
                     }
-                    bail!("the learner exited ({}){tail}", describe(Some(status)));
+                    if let Some(ending) = self.restart(Service::Learner, status, signals).await? {
+                        return Ok(ending);
+                    }
                 }
             }
             self.check_actors()?;
@@ -552,6 +650,118 @@ impl Session {
                 return Ok(self.ended_by_itself().await);
             }
         }
+    }
+
+    /// Restarts `service`, which died with `status`, from its last snapshot or checkpoint: after
+    /// a backoff, on the port it had, until it is ready again or has died too often (an error).
+    /// Records the restart with what it rolled back. `Some(Interrupted)` when Ctrl-C came first.
+    async fn restart(
+        &mut self,
+        service: Service,
+        status: std::process::ExitStatus,
+        signals: &mut Signals,
+    ) -> Result<Option<Ending>> {
+        let name = service.name();
+        let died_at = self.wall_s();
+        let first_cause = describe(Some(status));
+        let mut cause = first_cause.clone();
+        let mut tail = match service {
+            Service::Curriculum => self.server.log_tail(),
+            Service::Learner => self.learner.as_ref().map(Child::log_tail).unwrap_or_default(),
+        };
+        let before = self.rollback_counters();
+        let (child, line) = loop {
+            let now = self.wall_s();
+            let recent = self.service_deaths.recent(service.id(), now);
+            if !self.service_deaths.allow(service.id(), now) {
+                bail!(
+                    "the {name} died {} times within {SERVICE_RESTART_WINDOW_S} s (last: {cause}); \
+                     stopping the run{tail}",
+                    recent + 1
+                );
+            }
+            let delay = restart_delay_s(recent);
+            self.bar.println(format!(
+                "the {name} died ({cause}); restarting it in {delay} s from its last {}{tail}",
+                service.saved_state()
+            ));
+            tokio::select! {
+                _ = tokio::time::sleep(Duration::from_secs(delay)) => {}
+                _ = signals.recv() => return Ok(Some(Ending::Interrupted)),
+            }
+            let args = match service {
+                Service::Curriculum => self.server_args.clone(),
+                Service::Learner => self.learner_args.clone(),
+            };
+            let mut child = self.launcher.spawn(name, name, args)?;
+            let ready = tokio::select! {
+                ready = child.ready_line(READY_TIMEOUT) => ready,
+                _ = signals.recv() => {
+                    child.stop(LEARNER_GRACE).await;
+                    return Ok(Some(Ending::Interrupted));
+                }
+            };
+            match ready {
+                Ok(line) => break (child, line),
+                Err(e) => {
+                    cause = format!("it failed to start again: {e:#}");
+                    tail = String::new();
+                }
+            }
+        };
+        let pid = child.pid;
+        match service {
+            Service::Curriculum => {
+                self.server = child;
+                if let Some(view) = self.fetch_state().await {
+                    self.take_view(view);
+                }
+            }
+            Service::Learner => {
+                self.learner = Some(child);
+                self.last_health = None;
+                for _ in 0..10 {
+                    if self.poll_health().await {
+                        break;
+                    }
+                    tokio::time::sleep(POLL_EVERY).await;
+                }
+                if let Some(metrics) = ready_field(&line, "metrics") {
+                    self.bar
+                        .println(format!("learner metrics (Prometheus): {metrics}"));
+                }
+            }
+        }
+        let rolled_back = RolledBack::between(before, self.rollback_counters());
+        self.bar.println(format!(
+            "the {name} is back (pid {pid}) from its last {}: rolled back {} env steps, {} \
+             updates, {} episode reports",
+            service.saved_state(),
+            rolled_back.env_steps,
+            rolled_back.updates,
+            rolled_back.reports
+        ));
+        self.prep.progress.restarts.push(ServiceRestart {
+            process: name.to_owned(),
+            wall_s: died_at,
+            cause: first_cause,
+            rolled_back,
+        });
+        self.write_processes()?;
+        if let Err(e) = self.save_progress(false) {
+            self.bar.println(format!("warning: {e:#}"));
+        }
+        Ok(None)
+    }
+
+    /// The counters a restart can roll back: the learner's env steps and updates (its last
+    /// Health), the curriculum's episode reports (its last state).
+    fn rollback_counters(&self) -> [u64; 3] {
+        [
+            self.counters.env_steps,
+            self.counters.updates,
+            self.last_view.as_ref().map_or(0, |v| v.episodes),
+        ]
     }
 
     /// Why a run that ended by itself ended: the curriculum server's stop rule (the evals reached
@@ -606,12 +816,13 @@ impl Session {
         Ok(())
     }
 
-    async fn poll_health(&mut self) {
+    /// Takes the learner's counters from its Health; false when it did not answer.
+    async fn poll_health(&mut self) -> bool {
         let mut client = self.learner_client.clone();
         let Ok(Ok(reply)) =
             tokio::time::timeout(Duration::from_secs(2), client.health(v1::HealthRequest {})).await
         else {
-            return;
+            return false;
         };
         let h = reply.into_inner();
         let now = Instant::now();
@@ -630,6 +841,7 @@ impl Session {
             shm_records: h.shm_records,
             grpc_records: h.grpc_records,
         };
+        true
     }
 
     async fn fetch_state(&mut self) -> Option<DashboardView> {
@@ -714,11 +926,16 @@ impl Session {
         let _ = std::fs::remove_file(self.prep.run_dir.join("processes.json"));
         let wall = self.wall_s();
         self.save_progress(true)?;
-        let ending = ending?;
+        let summary_path = self.prep.run_dir.join("summary.json");
         let Some(view) = self.last_view.as_ref() else {
+            ending?;
             bail!("the curriculum server never answered GetState: no summary");
         };
-        let summary = summarize(
+        let (ending, failure) = match ending {
+            Ok(ending) => (ending, None),
+            Err(e) => (Ending::Failed, Some(e)),
+        };
+        let mut summary = summarize(
             view,
             &self.evals,
             self.counters,
@@ -726,7 +943,15 @@ impl Session {
             wall,
             ending,
         );
-        write_json(&self.prep.run_dir.join("summary.json"), &summary)?;
+        if let Some(e) = failure {
+            summary.error = Some(format!("{e:#}"));
+            write_json(&summary_path, &summary)?;
+            return Err(e.context(format!(
+                "the run failed (its summary is in {})",
+                summary_path.display()
+            )));
+        }
+        write_json(&summary_path, &summary)?;
         println!("{}", serde_json::to_string_pretty(&summary)?);
         match ending {
             Ending::Interrupted => eprintln!(
@@ -734,6 +959,7 @@ impl Session {
                 self.prep.config_path.display(),
                 self.prep.run_dir.display()
             ),
+            Ending::Failed => unreachable!("a failure returned above"),
             Ending::Budget | Ending::EvalSuccess => eprintln!(
                 "run finished ({}); summary in {}",
                 match ending {
@@ -745,6 +971,15 @@ impl Session {
         }
         Ok(summary)
     }
+}
+
+/// The port of `host:port` or `http://host:port/`.
+fn port_of(addr: &str) -> Result<u16> {
+    addr.trim_end_matches('/')
+        .rsplit(':')
+        .next()
+        .and_then(|p| p.parse().ok())
+        .with_context(|| format!("no port in the service address {addr:?}"))
 }
 
 fn format_eval(e: &CompleteEval) -> String {

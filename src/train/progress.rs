@@ -42,6 +42,50 @@ pub struct RunProgress {
     pub sessions: u32,
     pub evals: Vec<CompleteEval>,
     pub actor_respawns: u64,
+    /// Every restart of the learner or the curriculum server, in order.
+    #[serde(default)]
+    pub restarts: Vec<ServiceRestart>,
+}
+
+/// A service that died and was restarted from its last checkpoint or snapshot.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ServiceRestart {
+    /// `learner` or `curriculum-server`.
+    pub process: String,
+    /// Run wall time of the death.
+    pub wall_s: f64,
+    /// How it ended ("killed by signal 9", "exit status 1").
+    pub cause: String,
+    /// What the restart lost: the learner's env steps and updates since its last checkpoint, or
+    /// the curriculum's episode reports since its last snapshot (their leases' episodes happened,
+    /// but the curriculum no longer counts them).
+    pub rolled_back: RolledBack,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RolledBack {
+    pub env_steps: u64,
+    pub updates: u64,
+    pub reports: u64,
+}
+
+impl RolledBack {
+    /// What went from `before` (last seen before the death) to `after` (first seen after the
+    /// restart): the counters that went backwards, by how much.
+    pub fn between(before: [u64; 3], after: [u64; 3]) -> Self {
+        let lost = |i: usize| before[i].saturating_sub(after[i]);
+        Self {
+            env_steps: lost(0),
+            updates: lost(1),
+            reports: lost(2),
+        }
+    }
+}
+
+/// Seconds to wait before restarting a service that has already been restarted `recent` times
+/// within the limiter's window: 1, 2, 4, ... capped at 30, so a crash loop does not spin.
+pub fn restart_delay_s(recent: usize) -> u64 {
+    1u64.checked_shl(recent as u32).unwrap_or(u64::MAX).min(30)
 }
 
 impl RunProgress {
@@ -195,6 +239,8 @@ pub enum Ending {
     EvalSuccess,
     /// Ctrl-C or SIGTERM: resume with `--resume`.
     Interrupted,
+    /// A process failed beyond what supervision repairs (the summary's `error` says which).
+    Failed,
 }
 
 /// `RUN_DIR/summary.json`.
@@ -203,6 +249,9 @@ pub struct Summary {
     pub run_name: String,
     pub env_id: String,
     pub ending: Ending,
+    /// Why the run failed, when `ending` is `failed`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
     /// Env steps the learner received (its Health), and its critic updates.
     pub env_steps: u64,
     pub updates: u64,
@@ -227,6 +276,9 @@ pub struct Summary {
     pub expired_leases: u64,
     pub refused_reports: u64,
     pub actor_respawns: u64,
+    /// Restarts of the learner and the curriculum server, with what each rolled back.
+    #[serde(default)]
+    pub service_restarts: Vec<ServiceRestart>,
     /// Simulator worker processes restarted after a crash or hang (the curriculum server's count
     /// over all actors and their respawns); each replayed its episode, so nothing else shows it.
     #[serde(default)]
@@ -277,6 +329,7 @@ pub fn summarize(
         run_name: view.run_name.clone(),
         env_id: view.env_id.clone(),
         ending,
+        error: None,
         env_steps: learner.env_steps,
         updates: learner.updates,
         policy_version: learner.policy_version,
@@ -294,6 +347,7 @@ pub fn summarize(
         expired_leases: view.expired_leases,
         refused_reports: r.duplicate + r.expired + r.unknown + r.epoch_mismatch + r.malformed,
         actor_respawns: progress.actor_respawns,
+        service_restarts: progress.restarts.clone(),
         sim_worker_restarts: view.sim_worker_restarts,
         transitions_shm: learner.shm_records,
         transitions_grpc: learner.grpc_records,
@@ -324,6 +378,13 @@ impl RespawnLimiter {
             window_s,
             deaths: BTreeMap::new(),
         }
+    }
+
+    /// Deaths of `id` within the window before `now`.
+    pub fn recent(&self, id: u32, now: f64) -> usize {
+        self.deaths
+            .get(&id)
+            .map_or(0, |d| d.iter().filter(|&&t| now - t < self.window_s).count())
     }
 
     /// Records a death of actor `id` at `now`; true when it may be respawned.
@@ -520,6 +581,34 @@ mod tests {
         assert_eq!(json["ending"], "budget");
         assert_eq!(json["sim_worker_restarts"], 2);
         assert_eq!(json["to_success"][1]["threshold"], 0.9);
+    }
+
+    #[test]
+    fn restarts_back_off_and_say_what_they_rolled_back() {
+        assert_eq!(
+            [0, 1, 2, 3, 4, 5, 6, 64].map(restart_delay_s),
+            [1, 2, 4, 8, 16, 30, 30, 30]
+        );
+        // The learner came back at its checkpoint: 2,000 env steps and 500 updates lost; the
+        // reports counter is not the learner's and did not move.
+        assert_eq!(
+            RolledBack::between([12_000, 3_000, 7], [10_000, 2_500, 7]),
+            RolledBack {
+                env_steps: 2_000,
+                updates: 500,
+                reports: 0
+            }
+        );
+        // Counters that grew in between (a restart after new work) lose nothing.
+        assert_eq!(
+            RolledBack::between([5, 5, 5], [6, 5, 9]),
+            RolledBack::default()
+        );
+        let mut r = RespawnLimiter::new(3, 600.0);
+        assert_eq!(r.recent(0, 0.0), 0);
+        r.allow(0, 0.0);
+        r.allow(0, 100.0);
+        assert_eq!((r.recent(0, 200.0), r.recent(0, 650.0), r.recent(1, 200.0)), (2, 1, 0));
     }
 
     #[test]
