@@ -7,6 +7,7 @@
 #![forbid(unsafe_code)]
 
 mod bench_e2e;
+mod bench_faults;
 mod demos_sim;
 mod demos_suites;
 mod eval;
@@ -66,8 +67,21 @@ enum Command {
     /// Benchmarks (results go to benches/RESULTS.md).
     Bench {
         /// What to measure: curriculum (Acquire + Report pairs over gRPC), learner (SAC updates/s),
-        /// actor (the actor's overhead over a bare env loop) or e2e (whole runs, 1, 2, 4 actors).
+        /// actor (the actor's overhead over a bare env loop), e2e (whole runs, 1, 2, 4 actors) or
+        /// faults (whole runs, each SIGKILLing one process at a random moment).
         target: String,
+        /// Whole runs, the first undisturbed (faults).
+        #[arg(long, default_value_t = 20)]
+        runs: u32,
+        /// Seed of the kill moments (faults).
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Eval success at which each run stops (faults).
+        #[arg(long, default_value_t = 0.9)]
+        bar: f64,
+        /// Where the runs and their logs go (faults; default runs/bench-faults).
+        #[arg(long)]
+        out: Option<PathBuf>,
         /// Concurrent clients (curriculum).
         #[arg(long, default_value_t = 64)]
         clients: usize,
@@ -263,6 +277,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
             envs,
             actors,
             learner,
+            runs,
+            seed,
+            bar,
+            out,
         } => match target.as_str() {
             "curriculum" => bench_curriculum(clients, seconds, connect).map(|()| ExitCode::SUCCESS),
             "actor" => bench_actor(&config, envs, seconds).map(|()| ExitCode::SUCCESS),
@@ -279,7 +297,21 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 println!("{}", serde_json::to_string_pretty(&json)?);
                 Ok(ExitCode::SUCCESS)
             }
-            other => bail!("`rfcl bench {other}`: expected curriculum, learner, actor or e2e"),
+            "faults" => {
+                let out = out.unwrap_or_else(bench_faults::default_out);
+                let results = bench_faults::run(&config, runs, seed, bar, &out)?;
+                let json = serde_json::json!({
+                    "bench": "faults",
+                    "config": config,
+                    "seed": seed,
+                    "bar": bar,
+                    "results": results,
+                });
+                println!("{}", serde_json::to_string_pretty(&json)?);
+                println!("{}", bench_faults::table(&results));
+                Ok(ExitCode::SUCCESS)
+            }
+            other => bail!("`rfcl bench {other}`: expected curriculum, learner, actor, e2e or faults"),
         },
     }
 }

@@ -840,6 +840,8 @@ impl Session {
             policy_version: h.policy_version,
             shm_records: h.shm_records,
             grpc_records: h.grpc_records,
+            shm_lost_records: h.shm_lost_records,
+            refused_batches: h.refused_batches,
         };
         true
     }

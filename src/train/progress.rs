@@ -289,6 +289,12 @@ pub struct Summary {
     pub transitions_shm: u64,
     #[serde(default)]
     pub transitions_grpc: u64,
+    /// Records missing between an actor's shared-memory frames, and batches refused as
+    /// malformed (the last session's learner process).
+    #[serde(default)]
+    pub transitions_lost_shm: u64,
+    #[serde(default)]
+    pub refused_batches: u64,
     pub evals: Vec<CompleteEval>,
 }
 
@@ -301,6 +307,8 @@ pub struct LearnerCounters {
     /// Records taken in per transport.
     pub shm_records: u64,
     pub grpc_records: u64,
+    pub shm_lost_records: u64,
+    pub refused_batches: u64,
 }
 
 /// Builds the summary of a run from its trackers and the curriculum server's last state.
@@ -351,6 +359,8 @@ pub fn summarize(
         sim_worker_restarts: view.sim_worker_restarts,
         transitions_shm: learner.shm_records,
         transitions_grpc: learner.grpc_records,
+        transitions_lost_shm: learner.shm_lost_records,
+        refused_batches: learner.refused_batches,
         evals: evals.evals(),
     }
 }
@@ -565,10 +575,13 @@ mod tests {
             policy_version: 40,
             shm_records: 3000,
             grpc_records: 100,
+            shm_lost_records: 7,
+            refused_batches: 1,
         };
         let s = summarize(&view, &t, learner, &progress, 60.0, Ending::Budget);
         assert_eq!(s.stage_1_env_steps, Some(1500));
         assert_eq!((s.transitions_shm, s.transitions_grpc), (3000, 100));
+        assert_eq!((s.transitions_lost_shm, s.refused_batches), (7, 1));
         assert_eq!(s.to_success[0].env_steps, Some(2000));
         assert_eq!(s.to_success[1].env_steps, Some(3000));
         assert_eq!(s.to_success[1].wall_s, Some(7.0));
