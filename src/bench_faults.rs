@@ -65,7 +65,11 @@ pub fn run(config: &Path, runs: u32, seed: u64, bar: f64, out: &Path) -> Result<
             .collect();
         times.sort_by(f64::total_cmp);
         let started = Instant::now();
-        eprintln!("faults: run {}/{runs}: kill {kind} x{kills} at {times:.0?} s", i + 1);
+        eprintln!(
+            "faults: run {}/{runs}: kill {} x{kills} at {times:.0?} s",
+            i + 1,
+            kind.trim_end_matches('-')
+        );
         let result = one_run(config, &demos, out, i, kind, &times, bar)?;
         eprintln!(
             "faults: run {}/{runs} {} ({}) in {:.0} s",

@@ -1,4 +1,4 @@
-//! The run configuration: every option of `shared/spec/RFCL.md` sections 2-8 plus the service's
+//! The run configuration: every option of docs/ALGORITHM.md sections 2-8 plus the service's
 //! own. Option names follow the reference implementation where the spec names them (`num_qs`,
 //! `grad_updates_per_step`, `reverse_step_size`, ...) so researchers recognise them; `Default` is the
 //! reference behaviour. See `docs/CONFIG.md` for the reference of every key and the deliberate
