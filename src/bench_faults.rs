@@ -42,6 +42,9 @@ pub struct FaultRun {
     pub actor_respawns: u64,
     pub expired_leases: u64,
     pub refused_reports: u64,
+    /// Of which duplicates (a report the curriculum had already applied, e.g. resent after a
+    /// restart).
+    pub duplicate_reports: u64,
     pub shm_lost_records: u64,
     pub refused_batches: u64,
 }
@@ -58,7 +61,10 @@ pub fn run(config: &Path, runs: u32, seed: u64, bar: f64, out: &Path) -> Result<
         let mut rng = ChaCha8Rng::seed_from_u64(seed + u64::from(i));
         let (kind, kills) = match i {
             0 => ("none", 0),
-            _ => (KINDS[(i as usize - 1) % KINDS.len()], if i % 3 == 0 { 2 } else { 1 }),
+            _ => (
+                KINDS[(i as usize - 1) % KINDS.len()],
+                if i % 3 == 0 { 2 } else { 1 },
+            ),
         };
         let mut times: Vec<f64> = (0..kills)
             .map(|_| rng.random_range(KILL_FROM_S..KILL_UNTIL_S))
@@ -74,7 +80,11 @@ pub fn run(config: &Path, runs: u32, seed: u64, bar: f64, out: &Path) -> Result<
         eprintln!(
             "faults: run {}/{runs} {} ({}) in {:.0} s",
             i + 1,
-            if result.reached_bar { "reached its bar" } else { "did NOT reach its bar" },
+            if result.reached_bar {
+                "reached its bar"
+            } else {
+                "did NOT reach its bar"
+            },
             result.ending,
             started.elapsed().as_secs_f64()
         );
@@ -126,7 +136,10 @@ fn one_run(
         }
         if Instant::now() > deadline {
             let _ = child.kill();
-            bail!("run {index} did not end within {RUN_LIMIT:?}: see {}", log_path.display());
+            bail!(
+                "run {index} did not end within {RUN_LIMIT:?}: see {}",
+                log_path.display()
+            );
         }
         if let Some(&at) = next {
             if up.elapsed().as_secs_f64() >= at {
@@ -137,19 +150,32 @@ fn one_run(
         std::thread::sleep(Duration::from_millis(200));
     };
     let summary_path = run_dir.join("summary.json");
-    let summary: Value = serde_json::from_str(
-        &std::fs::read_to_string(&summary_path)
-            .with_context(|| format!("run {index} ({status}) wrote no summary: see {}", log_path.display()))?,
-    )
-    .with_context(|| format!("parsing {}", summary_path.display()))?;
+    let summary: Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary_path).with_context(|| {
+            format!(
+                "run {index} ({status}) wrote no summary: see {}",
+                log_path.display()
+            )
+        })?)
+        .with_context(|| format!("parsing {}", summary_path.display()))?;
     let u = |key: &str| summary[key].as_u64().unwrap_or(0);
     let to_bar = summary["to_success"]
         .as_array()
-        .and_then(|m| m.iter().find(|m| m["threshold"].as_f64() == Some(0.9)).cloned())
+        .and_then(|m| {
+            m.iter()
+                .find(|m| m["threshold"].as_f64() == Some(0.9))
+                .cloned()
+        })
         .unwrap_or(Value::Null);
-    let restarts = summary["service_restarts"].as_array().cloned().unwrap_or_default();
+    let restarts = summary["service_restarts"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
     let rolled = |key: &str| -> u64 {
-        restarts.iter().map(|r| r["rolled_back"][key].as_u64().unwrap_or(0)).sum()
+        restarts
+            .iter()
+            .map(|r| r["rolled_back"][key].as_u64().unwrap_or(0))
+            .sum()
     };
     let ending = summary["ending"].as_str().unwrap_or("unknown").to_owned();
     Ok(FaultRun {
@@ -166,6 +192,9 @@ fn one_run(
         actor_respawns: u("actor_respawns"),
         expired_leases: u("expired_leases"),
         refused_reports: u("refused_reports"),
+        duplicate_reports: summary["refused_reports_by_reason"]["duplicate"]
+            .as_u64()
+            .unwrap_or(0),
         shm_lost_records: u("transitions_lost_shm"),
         refused_batches: u("refused_batches"),
     })
@@ -192,15 +221,19 @@ fn kill_one(processes: &Path, prefix: &str) -> Result<()> {
 /// The results as a Markdown table (for benches/RESULTS.md).
 pub fn table(results: &[FaultRun]) -> String {
     let mut s = String::from(
-        "| run | killed | at (s) | ending | env steps to 90 % | wall s to 90 % | service restarts | rolled back env steps / reports | actor respawns | expired leases | refused reports | shm records lost | refused batches |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| run | killed | at (s) | ending | env steps to 90 % | wall s to 90 % | service restarts | rolled back env steps / reports | actor respawns | expired leases | refused reports (duplicates) | shm records lost | refused batches |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in results {
         let times: Vec<String> = r.kill_times_s.iter().map(|t| format!("{t:.0}")).collect();
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} ({}) | {} | {} |\n",
             r.run,
             r.killed,
-            if times.is_empty() { "-".into() } else { times.join(", ") },
+            if times.is_empty() {
+                "-".into()
+            } else {
+                times.join(", ")
+            },
             r.ending,
             r.env_steps_to_bar.map_or("-".into(), |v| v.to_string()),
             r.wall_s_to_bar.map_or("-".into(), |v| format!("{v:.0}")),
@@ -210,6 +243,7 @@ pub fn table(results: &[FaultRun]) -> String {
             r.actor_respawns,
             r.expired_leases,
             r.refused_reports,
+            r.duplicate_reports,
             r.shm_lost_records,
             r.refused_batches,
         ));

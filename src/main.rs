@@ -311,7 +311,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 println!("{}", bench_faults::table(&results));
                 Ok(ExitCode::SUCCESS)
             }
-            other => bail!("`rfcl bench {other}`: expected curriculum, learner, actor, e2e or faults"),
+            other => {
+                bail!("`rfcl bench {other}`: expected curriculum, learner, actor, e2e or faults")
+            }
         },
     }
 }

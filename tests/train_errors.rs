@@ -183,15 +183,14 @@ fn a_learner_that_keeps_dying_stops_the_run_with_a_failed_summary() {
         stderr.contains("the learner died 4 times within 600 s (last: killed by signal 9)"),
         "{stderr}"
     );
-    assert_eq!(
-        stderr.matches("the learner is back").count(),
-        3,
-        "{stderr}"
-    );
+    assert_eq!(stderr.matches("the learner is back").count(), 3, "{stderr}");
     let summary = training.summary();
     assert_eq!(summary["ending"], "failed");
     assert!(
-        summary["error"].as_str().unwrap().contains("the learner died 4 times"),
+        summary["error"]
+            .as_str()
+            .unwrap()
+            .contains("the learner died 4 times"),
         "{summary}"
     );
     assert_eq!(summary["service_restarts"].as_array().unwrap().len(), 3);

@@ -52,7 +52,12 @@ fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
     let (new_server, processes) = wait_for(Duration::from_secs(60), || {
         replaced(&run_dir, "curriculum-server", server)
     })
-    .unwrap_or_else(|| panic!("the curriculum server was not restarted:\n{}", training.stderr()));
+    .unwrap_or_else(|| {
+        panic!(
+            "the curriculum server was not restarted:\n{}",
+            training.stderr()
+        )
+    });
     assert!(alive(new_server));
     let stderr = training.stderr();
     assert!(
@@ -76,9 +81,10 @@ fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
     })
     .unwrap_or_else(|| panic!("the learner made no progress:\n{}", training.stderr()));
     signal(learner as u32, rustix::process::Signal::KILL);
-    let (new_learner, processes) =
-        wait_for(Duration::from_secs(120), || replaced(&run_dir, "learner", learner))
-            .unwrap_or_else(|| panic!("the learner was not restarted:\n{}", training.stderr()));
+    let (new_learner, processes) = wait_for(Duration::from_secs(120), || {
+        replaced(&run_dir, "learner", learner)
+    })
+    .unwrap_or_else(|| panic!("the learner was not restarted:\n{}", training.stderr()));
     assert!(alive(new_learner));
     assert!(
         training
@@ -97,7 +103,11 @@ fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
         .iter()
         .map(|r| r["process"].as_str().unwrap())
         .collect();
-    assert_eq!(processes_restarted, ["curriculum-server", "learner"], "{summary}");
+    assert_eq!(
+        processes_restarted,
+        ["curriculum-server", "learner"],
+        "{summary}"
+    );
     for r in restarts {
         assert_eq!(r["cause"], "killed by signal 9");
         assert!(r["rolled_back"]["env_steps"].is_u64());

@@ -339,15 +339,12 @@ impl Rollout {
                 }
                 None => &action,
             };
-            let outcome = slot
-                .env
-                .step(env_act)
-                .map_err(|error| RolloutError::Step {
-                    env: index,
-                    lease_id: episode.lease.lease_id,
-                    step: episode.length,
-                    error,
-                })?;
+            let outcome = slot.env.step(env_act).map_err(|error| RolloutError::Step {
+                env: index,
+                lease_id: episode.lease.lease_id,
+                step: episode.length,
+                error,
+            })?;
             let reward = if outcome.success { 1.0f32 } else { 0.0 };
             episode.length += 1;
             episode.episode_return += f64::from(reward);

@@ -324,13 +324,22 @@ fn a_base_config_that_is_not_yaml_is_named_by_kind_not_echoed() {
     let dir = tempfile::tempdir().unwrap();
     let notes = dir.path().join("notes.txt");
     // Plain prose parses as a YAML string: the error names its kind, not its content.
-    std::fs::write(&notes, "my private notes, the key is hunter2 and more text\n").unwrap();
+    std::fs::write(
+        &notes,
+        "my private notes, the key is hunter2 and more text\n",
+    )
+    .unwrap();
     let run = dir.path().join("run.yml");
     std::fs::write(&run, "base_config: notes.txt\n").unwrap();
     let err = resolve_file(&run, &[]).unwrap_err().to_string();
-    assert!(!err.contains("hunter2"), "the file's content is echoed: {err}");
     assert!(
-        err.contains("notes.txt") && err.contains("expected a YAML mapping") && err.contains("got a string"),
+        !err.contains("hunter2"),
+        "the file's content is echoed: {err}"
+    );
+    assert!(
+        err.contains("notes.txt")
+            && err.contains("expected a YAML mapping")
+            && err.contains("got a string"),
         "{err}"
     );
 }

@@ -612,17 +612,25 @@ fn nan_in_observations_names_episode_step_and_column() {
 #[test]
 fn infinity_in_env_states_and_actions_is_refused() {
     let (_dir, path) = broken(|f| {
-        poison_f32(f, "traj_0/env_states/actors/cube", &[7, 13], 13 + 2, f32::INFINITY)
+        poison_f32(
+            f,
+            "traj_0/env_states/actors/cube",
+            &[7, 13],
+            13 + 2,
+            f32::INFINITY,
+        )
     });
     let err = load_err(&path).to_string();
     assert!(
         err.contains("traj_0/env_states/actors/cube has inf at step 1, column 2"),
         "{err}"
     );
-    let (_dir, path) =
-        broken(|f| poison_f32(f, "traj_3/actions", &[4, ACT], 0, f32::NEG_INFINITY));
+    let (_dir, path) = broken(|f| poison_f32(f, "traj_3/actions", &[4, ACT], 0, f32::NEG_INFINITY));
     let err = load_err(&path).to_string();
-    assert!(err.contains("traj_3/actions has -inf at step 0, column 0"), "{err}");
+    assert!(
+        err.contains("traj_3/actions has -inf at step 0, column 0"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -34,6 +34,13 @@ pub struct DashboardView {
     /// Calls refused UNAUTHENTICATED (no run token or a wrong one) since the server started.
     #[serde(default)]
     pub unauthenticated_calls: u64,
+    /// Actor ids dropped from `actors` after `service.forget_actors_after_s` without a call.
+    #[serde(default)]
+    pub actors_forgotten: u64,
+    /// Snapshot writes that failed since the server started (each is logged; the server stops
+    /// after several failures in a row).
+    #[serde(default)]
+    pub snapshot_failures: u64,
     pub solved_frac: f64,
     pub demos: Vec<DemoBar>,
     pub levels: Vec<LevelRow>,
@@ -81,6 +88,25 @@ pub struct RefusedReports {
     pub unknown: u64,
     pub epoch_mismatch: u64,
     pub malformed: u64,
+    /// From an actor that does not hold the lease (refused PERMISSION_DENIED).
+    #[serde(default)]
+    pub not_holder: u64,
+    /// Episodes longer than their lease's time limit (refused INVALID_ARGUMENT).
+    #[serde(default)]
+    pub over_time_limit: u64,
+}
+
+impl RefusedReports {
+    /// Reports refused for any reason.
+    pub fn total(&self) -> u64 {
+        self.duplicate
+            + self.expired
+            + self.unknown
+            + self.epoch_mismatch
+            + self.malformed
+            + self.not_holder
+            + self.over_time_limit
+    }
 }
 
 /// One demo's reverse-curriculum progress (spec 2).
@@ -428,8 +454,8 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 <span>episodes {episodes} ({eps:.1}/s)</span><span>open leases {open}</span><span>expired leases {expired}</span>
 <span>sim worker restarts {restarts}</span>
 <span>demos solved {solved:.0}%</span></p>
-<p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}</span>
-<span>unauthenticated calls {unauth}</span></p>
+<p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}, not the lease holder {nothold}, over the time limit {overlim}</span>
+<span>unauthenticated calls {unauth}</span><span>actors forgotten {forgotten}</span><span>snapshot failures {snapfail}</span></p>
 "#,
         name = esc(&view.run_name),
         env = esc(&view.env_id),
@@ -452,7 +478,11 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         unk = view.refused_reports.unknown,
         epm = view.refused_reports.epoch_mismatch,
         mal = view.refused_reports.malformed,
+        nothold = view.refused_reports.not_holder,
+        overlim = view.refused_reports.over_time_limit,
         unauth = view.unauthenticated_calls,
+        forgotten = view.actors_forgotten,
+        snapfail = view.snapshot_failures,
     );
     if let Some(s1) = view.stage_1_env_steps {
         let _ = writeln!(h, "<p>stage 1 ended after <b>{s1}</b> env steps</p>");
@@ -602,6 +632,18 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         "Simulator worker processes restarted after a crash or hang (episode replayed)",
         view.sim_worker_restarts,
     );
+    counter(
+        &mut r,
+        "actors_forgotten",
+        "Actor ids dropped from the per-actor table after service.forget_actors_after_s without a call",
+        view.actors_forgotten,
+    );
+    counter(
+        &mut r,
+        "snapshot_failures",
+        "Curriculum snapshot writes that failed",
+        view.snapshot_failures,
+    );
     gauge(
         &mut r,
         "solved_fraction",
@@ -616,6 +658,8 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         ("unknown", rr.unknown),
         ("epoch_mismatch", rr.epoch_mismatch),
         ("malformed", rr.malformed),
+        ("not_holder", rr.not_holder),
+        ("over_time_limit", rr.over_time_limit),
     ] {
         refused
             .get_or_create(&vec![("reason".into(), reason.into())])
@@ -736,6 +780,10 @@ mod tests {
     fn metrics_use_rfcl_names_and_labels() {
         let mut v = view();
         v.refused_reports.duplicate = 3;
+        v.refused_reports.over_time_limit = 4;
+        v.refused_reports.not_holder = 5;
+        v.actors_forgotten = 6;
+        v.snapshot_failures = 7;
         v.sim_worker_restarts = 2;
         let text = metrics_text(&v, 42);
         assert!(
@@ -750,6 +798,14 @@ mod tests {
             text.contains("rfcl_curriculum_reports_refused_total{reason=\"duplicate\"} 3"),
             "{text}"
         );
+        for line in [
+            "rfcl_curriculum_reports_refused_total{reason=\"over_time_limit\"} 4",
+            "rfcl_curriculum_reports_refused_total{reason=\"not_holder\"} 5",
+            "rfcl_curriculum_actors_forgotten_total 6",
+            "rfcl_curriculum_snapshot_failures_total 7",
+        ] {
+            assert!(text.contains(line), "{line} missing from {text}");
+        }
         assert!(
             text.contains("rfcl_curriculum_demo_solved{demo=\"1\"} 1"),
             "{text}"

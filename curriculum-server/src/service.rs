@@ -5,6 +5,7 @@
 //! is the single writer. Wire types are converted once, at the top of each RPC.
 use std::collections::{BTreeMap, VecDeque};
 use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -22,7 +23,7 @@ use crate::dashboard::{
     ActorRow, DashboardView, DemoBar, EvalPoint, LevelRow, MazeCell, MazeSnapshot, MazeView,
     ProgressPoint, RefusedReports,
 };
-use crate::leases::{LeaseTable, ReportRefusal};
+use crate::leases::{LeaseTable, ReportClaim, ReportRefusal};
 use crate::{
     stop, Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, DemoMeta,
     EpisodeOutcome, LevelSource, Stage,
@@ -134,12 +135,19 @@ pub struct Stats {
     /// (time, episodes) of the previous history sample, for episodes/s.
     pub last_sample: (f64, u64),
     pub episodes_per_s: f64,
+    /// Actor ids dropped from `actors` after `service.forget_actors_after_s` without a call.
+    /// Absent in older snapshots.
+    #[serde(default)]
+    pub actors_forgotten: u64,
+    /// Simulator worker restarts of the forgotten actors: the run's total keeps them.
+    #[serde(default)]
+    pub forgotten_sim_restarts: u64,
 }
 
 impl Stats {
     /// Simulator worker restarts of the whole run, over every actor and its respawns.
     pub fn sim_worker_restarts(&self) -> u64 {
-        self.actors.values().map(|a| a.sim_restarts).sum()
+        self.forgotten_sim_restarts + self.actors.values().map(|a| a.sim_restarts).sum::<u64>()
     }
 }
 
@@ -190,6 +198,12 @@ impl From<ReportError> for Status {
                 Status::already_exists(err.to_string())
             }
             ReportError::Refused(ReportRefusal::Unknown(_)) => Status::not_found(err.to_string()),
+            ReportError::Refused(ReportRefusal::NotHolder { .. }) => {
+                Status::permission_denied(err.to_string())
+            }
+            ReportError::Refused(ReportRefusal::OverTimeLimit { .. }) => {
+                Status::invalid_argument(err.to_string())
+            }
             ReportError::Refused(_) | ReportError::StageEpochOver { .. } => {
                 Status::failed_precondition(err.to_string())
             }
@@ -274,10 +288,7 @@ impl ServerState {
                     seed: Some(seed),
                     ..ResetArgs::default()
                 },
-                time_limit: cfg
-                    .eval_env
-                    .max_episode_steps
-                    .unwrap_or(cfg.env.max_episode_steps),
+                time_limit: eval_time_limit(cfg),
                 stage,
                 stage_epoch: epoch,
                 level: 0,
@@ -323,19 +334,39 @@ impl ServerState {
         Ok(lease)
     }
 
-    /// Applies a report exactly once. A refused report changes nothing but its counter.
+    /// Applies a report exactly once. A refused report changes nothing but its counter (and, for
+    /// a report that does not claim more than its lease allows, the actor's heartbeat).
     pub fn report(
         &mut self,
         report: &EpisodeReport,
+        cfg: &RunConfig,
         now: f64,
     ) -> Result<ReportResult, ReportError> {
-        let actor = self.stats.actors.entry(report.actor_id).or_default();
-        actor.last_seen = now;
-        actor.env_steps = actor.env_steps.max(report.actor_env_steps);
-        actor.record_sim_restarts(report.sim_restarts);
-        let grant = self
-            .leases
-            .take_for_report(report.lease_id, report.stage_epoch)?;
+        let claim = ReportClaim {
+            lease_id: report.lease_id,
+            stage_epoch: report.stage_epoch,
+            actor_id: report.actor_id,
+            length: report.length,
+        };
+        // The episode's steps are added to the run's counts, so they must fit in the lease: the
+        // time limit handed out with it (stage 1's dynamic limit, the horizon in stage 2, the
+        // eval horizon for eval leases).
+        let taken = self.leases.take_for_report(claim, |g| match g.assignment {
+            Granted::Train(a) => a.time_limit,
+            Granted::Eval { .. } => eval_time_limit(cfg),
+        });
+        // A report that claims someone else's lease or more steps than its lease allows is not
+        // trusted as a heartbeat either.
+        if !matches!(
+            taken,
+            Err(ReportRefusal::NotHolder { .. } | ReportRefusal::OverTimeLimit { .. })
+        ) {
+            let actor = self.stats.actors.entry(report.actor_id).or_default();
+            actor.last_seen = now;
+            actor.env_steps = actor.env_steps.max(report.actor_env_steps);
+            actor.record_sim_restarts(report.sim_restarts);
+        }
+        let grant = taken?;
         self.stats
             .actors
             .entry(report.actor_id)
@@ -390,6 +421,37 @@ impl ServerState {
             stage_event: applied.stage_change.map(|_| self.stage_event()),
             eval: false,
         })
+    }
+
+    /// Drops the actors that have not called for more than `after_s` seconds and hold no open
+    /// lease, so the per-actor table (and with it snapshots and GetState) stays bounded however
+    /// many actor ids come and go. Their simulator restarts stay in the run's total. An actor that
+    /// comes back is listed afresh. Returns how many were dropped.
+    pub fn forget_idle_actors(&mut self, now: f64, after_s: f64) -> u64 {
+        if !self
+            .stats
+            .actors
+            .values()
+            .any(|a| now - a.last_seen > after_s)
+        {
+            return 0;
+        }
+        let holders: std::collections::HashSet<u32> =
+            self.leases.open_leases().map(|g| g.actor_id).collect();
+        let idle: Vec<u32> = self
+            .stats
+            .actors
+            .iter()
+            .filter(|(id, a)| now - a.last_seen > after_s && !holders.contains(id))
+            .map(|(id, _)| *id)
+            .collect();
+        for id in &idle {
+            if let Some(a) = self.stats.actors.remove(id) {
+                self.stats.forgotten_sim_restarts += a.sim_restarts;
+            }
+        }
+        self.stats.actors_forgotten += idle.len() as u64;
+        idle.len() as u64
     }
 
     /// Takes a progress sample for the dashboard's chart (bounded: halves its resolution when full).
@@ -575,7 +637,12 @@ impl ServerState {
                 unknown: r.unknown,
                 epoch_mismatch: r.epoch_mismatch,
                 malformed: self.stats.malformed_reports,
+                not_holder: r.not_holder,
+                over_time_limit: r.over_time_limit,
             },
+            actors_forgotten: self.stats.actors_forgotten,
+            // Known only to the snapshot writer: `Shared::view` fills it in.
+            snapshot_failures: 0,
             // Known only to the gRPC service: `Shared::view` fills it in.
             unauthenticated_calls: 0,
             solved_frac: reverse.solved_frac(),
@@ -589,6 +656,13 @@ impl ServerState {
     }
 }
 
+/// The time limit of every eval episode: the eval env's horizon.
+pub fn eval_time_limit(cfg: &RunConfig) -> u32 {
+    cfg.eval_env
+        .max_episode_steps
+        .unwrap_or(cfg.env.max_episode_steps)
+}
+
 /// Shared handles of a running server.
 #[derive(Clone)]
 pub struct Shared {
@@ -600,6 +674,11 @@ pub struct Shared {
     pub snapshot_due: Arc<tokio::sync::Notify>,
     /// The gRPC service's token check: the views count its refusals.
     pub guard: Guard,
+    /// Set when the server stops: open WatchStage streams end on it, so a stop never waits on
+    /// a subscriber that would otherwise stay forever.
+    pub stopping: Arc<watch::Sender<bool>>,
+    /// Snapshot writes that failed (the dashboard and /metrics show them).
+    pub snapshot_failures: Arc<AtomicU64>,
 }
 
 impl Shared {
@@ -612,6 +691,8 @@ impl Shared {
             stage_tx: Arc::new(stage_tx),
             snapshot_due: Arc::new(tokio::sync::Notify::new()),
             guard,
+            stopping: Arc::new(watch::channel(false).0),
+            snapshot_failures: Arc::new(AtomicU64::new(0)),
         }
     }
 
@@ -626,6 +707,7 @@ impl Shared {
         let state = self.lock();
         let mut view = state.view(&self.cfg.name, &self.cfg.env.env_id, now);
         view.unauthenticated_calls = self.guard.refused();
+        view.snapshot_failures = self.snapshot_failures.load(Ordering::Relaxed);
         if self.cfg.env.suite == Suite::Pointmaze {
             view.maze = Some(state.maze_view(&self.demos));
         }
@@ -649,7 +731,7 @@ impl CurriculumService {
         let now = unix_now();
         let (result, lease, event, snapshot_due) = {
             let mut state = self.shared.lock();
-            let result = match state.report(&report, now) {
+            let result = match state.report(&report, &self.shared.cfg, now) {
                 Ok(r) => Ok(r),
                 // A repeated report is acknowledged and changes nothing (exactly-once).
                 Err(ReportError::Refused(ReportRefusal::Duplicate(_))) => Ok(ReportResult {
@@ -710,6 +792,29 @@ fn acquire_status(err: CurriculumError) -> Status {
     }
 }
 
+/// A stream that ends as soon as `stop` resolves.
+struct UntilStopped<S> {
+    inner: S,
+    stop: Pin<Box<dyn std::future::Future<Output = ()> + Send>>,
+    /// `stop` resolved: it must not be polled again.
+    ended: bool,
+}
+
+impl<S: tokio_stream::Stream + Unpin> tokio_stream::Stream for UntilStopped<S> {
+    type Item = S::Item;
+
+    fn poll_next(
+        mut self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<S::Item>> {
+        if self.ended || self.stop.as_mut().poll(cx).is_ready() {
+            self.ended = true;
+            return std::task::Poll::Ready(None);
+        }
+        Pin::new(&mut self.inner).poll_next(cx)
+    }
+}
+
 type StageStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<v1::StageEvent, Status>> + Send>>;
 
 #[tonic::async_trait]
@@ -759,6 +864,15 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
     ) -> Result<Response<StageStream>, Status> {
         let rx = self.shared.stage_tx.subscribe();
         let stream = tokio_stream::wrappers::WatchStream::new(rx);
+        // The stream ends (status OK) when the server stops: a subscriber never holds up a stop.
+        let mut stopping = self.shared.stopping.subscribe();
+        let stream = UntilStopped {
+            inner: stream,
+            stop: Box::pin(async move {
+                let _ = stopping.wait_for(|s| *s).await;
+            }),
+            ended: false,
+        };
         Ok(Response::new(Box::pin(tokio_stream::StreamExt::map(
             stream, Ok,
         ))))
@@ -816,7 +930,7 @@ mod tests {
                 policy_env_steps: 0,
                 sim_restarts,
             };
-            state.report(&report, 1.0).unwrap();
+            state.report(&report, &cfg, 1.0).unwrap();
         };
         // Actor 1's first process: 2 restarts, then none, then 1 more.
         report(1, 2);
@@ -842,6 +956,173 @@ mod tests {
         let old: ActorStats =
             serde_json::from_str(r#"{"last_seen": 1.0, "env_steps": 10, "episodes": 2}"#).unwrap();
         assert_eq!((old.sim_restarts, old.last_reported_sim_restarts), (0, 0));
+    }
+
+    fn one_demo() -> (RunConfig, DemoResets, ServerState) {
+        let metas = [DemoMeta {
+            success: vec![false, false, true],
+            reset_seed: Some(0),
+        }];
+        let cfg = RunConfig::default();
+        let demos = DemoResets {
+            state_dim: 1,
+            states: vec![vec![0.0, 1.0, 2.0, 3.0]],
+            reset: vec![ResetArgs::default()],
+        };
+        let state = ServerState::new(Curriculum::new(&cfg, &metas).unwrap(), 0.0);
+        (cfg, demos, state)
+    }
+
+    fn report_of(lease: &ResetLease, actor_id: u32, length: u32) -> EpisodeReport {
+        EpisodeReport {
+            lease_id: lease.lease_id,
+            success_at_end: true,
+            success_once: true,
+            episode_return: 1.0,
+            length,
+            policy_version: 0,
+            stage_epoch: lease.stage_epoch,
+            actor_id,
+            actor_env_steps: 5,
+            policy_env_steps: 0,
+            sim_restarts: 3,
+        }
+    }
+
+    #[test]
+    fn reports_longer_than_their_lease_or_from_another_actor_change_nothing() {
+        let (cfg, demos, mut state) = one_demo();
+        let train = AcquireRequest {
+            actor_id: 1,
+            env_index: 0,
+            eval: false,
+        };
+        let lease = state.acquire(train, &cfg, &demos, 1.0).unwrap();
+        let limit = lease.time_limit;
+        assert!(limit < cfg.env.max_episode_steps, "stage 1's dynamic limit");
+        let before = (state.stats.clone(), state.curriculum.clone());
+
+        let err = state
+            .report(&report_of(&lease, 1, u32::MAX), &cfg, 2.0)
+            .unwrap_err();
+        let status = Status::from(err);
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(
+            status.message().contains("EpisodeReport.length")
+                && status.message().contains(&format!("at most {limit}")),
+            "{}",
+            status.message()
+        );
+        // One step over the limit is refused too.
+        assert!(state
+            .report(&report_of(&lease, 1, limit + 1), &cfg, 2.0)
+            .is_err());
+        let status = Status::from(
+            state
+                .report(&report_of(&lease, 2, limit), &cfg, 2.0)
+                .unwrap_err(),
+        );
+        assert_eq!(status.code(), tonic::Code::PermissionDenied);
+        assert!(
+            status.message().contains("EpisodeReport.actor_id")
+                && status.message().contains("held by actor 1"),
+            "{}",
+            status.message()
+        );
+        // Nothing moved: no env steps, no episode, no actor row for the stranger, no heartbeat.
+        assert_eq!((&state.stats, &state.curriculum), (&before.0, &before.1));
+        let view = state.view("run", "PointMaze-v0", 2.0);
+        assert_eq!(
+            (
+                view.refused_reports.over_time_limit,
+                view.refused_reports.not_holder
+            ),
+            (2, 1)
+        );
+        assert_eq!(view.open_leases, 1, "the lease stays open for its holder");
+        // The holder's report at the limit applies.
+        assert!(
+            state
+                .report(&report_of(&lease, 1, limit), &cfg, 3.0)
+                .unwrap()
+                .applied
+        );
+        assert_eq!(state.stats.env_steps, u64::from(limit));
+
+        // Eval leases are bounded by the eval horizon.
+        let eval = AcquireRequest {
+            eval: true,
+            ..train
+        };
+        let lease = state.acquire(eval, &cfg, &demos, 4.0).unwrap();
+        assert_eq!(lease.time_limit, eval_time_limit(&cfg));
+        let status = Status::from(
+            state
+                .report(&report_of(&lease, 1, lease.time_limit + 1), &cfg, 4.0)
+                .unwrap_err(),
+        );
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(
+            state
+                .report(&report_of(&lease, 1, lease.time_limit), &cfg, 4.0)
+                .unwrap()
+                .eval
+        );
+    }
+
+    #[test]
+    fn actors_silent_for_too_long_are_forgotten_and_counted() {
+        let (cfg, demos, mut state) = one_demo();
+        let req = |actor_id| AcquireRequest {
+            actor_id,
+            env_index: 0,
+            eval: false,
+        };
+        // Actor 1 reports at t = 10 with 3 simulator restarts; actor 2 calls at t = 500; actor 3
+        // takes a lease at t = 10 and never reports it.
+        let lease = state.acquire(req(1), &cfg, &demos, 10.0).unwrap();
+        state.report(&report_of(&lease, 1, 1), &cfg, 10.0).unwrap();
+        state.acquire(req(3), &cfg, &demos, 10.0).unwrap();
+        let lease = state.acquire(req(2), &cfg, &demos, 500.0).unwrap();
+        state.report(&report_of(&lease, 2, 1), &cfg, 500.0).unwrap();
+        assert_eq!(state.stats.sim_worker_restarts(), 6);
+
+        // At t = 610 actor 1 has been silent for 600 s: not over the bound yet.
+        assert_eq!(state.forget_idle_actors(610.0, 600.0), 0);
+        // At t = 611 it is; actor 3 is as silent but still holds a lease.
+        assert_eq!(state.forget_idle_actors(611.0, 600.0), 1);
+        let ids: Vec<u32> = state.stats.actors.keys().copied().collect();
+        assert_eq!(ids, [2, 3]);
+        // Its restarts stay in the run's total.
+        assert_eq!(state.stats.sim_worker_restarts(), 6);
+        // Once actor 3's lease expired, it goes too.
+        state.leases.expire(611.0, 120.0);
+        assert_eq!(state.forget_idle_actors(611.0, 600.0), 1);
+        let view = state.view("run", "PointMaze-v0", 611.0);
+        assert_eq!(view.actors_forgotten, 2);
+        assert_eq!(
+            view.actors.iter().map(|a| a.actor_id).collect::<Vec<_>>(),
+            [2]
+        );
+        // 10,000 actor ids passing through leave a table of the recent ones only.
+        for id in 100..10_100u32 {
+            let now = 1000.0 + f64::from(id);
+            let lease = state.acquire(req(id), &cfg, &demos, now).unwrap();
+            state.report(&report_of(&lease, id, 1), &cfg, now).unwrap();
+            state.forget_idle_actors(now, 600.0);
+        }
+        assert!(
+            state.stats.actors.len() <= 601,
+            "{}",
+            state.stats.actors.len()
+        );
+        // Snapshots of older servers have no counts of forgotten actors.
+        let mut old = serde_json::to_value(&state.stats).unwrap();
+        let fields = old.as_object_mut().unwrap();
+        fields.remove("actors_forgotten");
+        fields.remove("forgotten_sim_restarts");
+        let old: Stats = serde_json::from_value(old).unwrap();
+        assert_eq!((old.actors_forgotten, old.forgotten_sim_restarts), (0, 0));
     }
 
     #[test]

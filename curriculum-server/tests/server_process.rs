@@ -590,3 +590,206 @@ async fn the_run_finishes_when_the_last_five_evals_reach_the_bar() {
         );
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_with_open_stage_watches_exits_promptly_and_writes_the_snapshot() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut server = ServerProcess::start_fresh(dir.path(), 30.0);
+    let mut client = server.client().await;
+    // Two learners watching the stage on their own connections; their streams never end by
+    // themselves.
+    let mut watches = Vec::new();
+    for _ in 0..2 {
+        let mut c = server.client().await;
+        let mut stream = c
+            .watch_stage(v1::WatchStageRequest {})
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(stream.message().await.unwrap().unwrap().stage, 1);
+        watches.push((c, stream));
+    }
+    let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+    client.report(report_for(&lease, true, 1.0)).await.unwrap();
+    assert_eq!(state_view(&mut client).await.episodes, 1);
+
+    std::process::Command::new("kill")
+        .args(["-TERM", &server.child.id().to_string()])
+        .status()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    let status = loop {
+        if let Some(status) = server.child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            t0.elapsed() < std::time::Duration::from_secs(5),
+            "still running 5 s after SIGTERM with two stage watches open"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    };
+    assert!(status.success(), "{status}");
+    // The watches were ended by the server (status OK), not cut off.
+    for (_, mut stream) in watches {
+        let end = tokio::time::timeout(std::time::Duration::from_secs(2), stream.message())
+            .await
+            .expect("the stage watch did not end");
+        assert!(matches!(end, Ok(None)), "{end:?}");
+    }
+    let snap = snapshot::load(&snapshot::snapshot_path(&dir.path().join("run")), "ctest")
+        .expect("the final snapshot");
+    assert_eq!(snap.stats.episodes, 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reports_beyond_their_lease_are_refused_counted_and_leave_it_open() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start_fresh(dir.path(), 30.0);
+    let mut client = server.client().await;
+    let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+    let before = curriculum_part(&state_view(&mut client).await);
+
+    let too_long = v1::EpisodeReport {
+        length: u32::MAX,
+        ..report_for(&lease, true, 1.0)
+    };
+    let status = client.report(too_long.clone()).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument);
+    let bound = format!("at most {}", lease.time_limit);
+    assert!(
+        status.message().contains("EpisodeReport.length") && status.message().contains(&bound),
+        "{}",
+        status.message()
+    );
+    // The same through ReportAndAcquire: refused, and no lease handed out.
+    let status = client
+        .report_and_acquire(v1::ReportAndAcquireRequest {
+            report: Some(v1::EpisodeReport {
+                length: lease.time_limit + 1,
+                ..too_long
+            }),
+            next: Some(acquire_req(0)),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument);
+    let stranger = v1::EpisodeReport {
+        actor_id: 7,
+        ..report_for(&lease, true, 1.0)
+    };
+    let status = client.report(stranger).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::PermissionDenied);
+    assert!(
+        status.message().contains("EpisodeReport.actor_id")
+            && status.message().contains("held by actor 0"),
+        "{}",
+        status.message()
+    );
+
+    let view = state_view(&mut client).await;
+    assert_eq!(
+        curriculum_part(&view),
+        before,
+        "refused reports changed the curriculum"
+    );
+    assert_eq!(view.env_steps, 0);
+    assert_eq!(
+        (
+            view.refused_reports.over_time_limit,
+            view.refused_reports.not_holder
+        ),
+        (2, 1)
+    );
+    assert_eq!(view.open_leases, 1, "the lease stays open for its holder");
+    let out = std::process::Command::new("curl")
+        .args(["-sf", &format!("{}metrics", server.dashboard)])
+        .output()
+        .unwrap();
+    let metrics = String::from_utf8_lossy(&out.stdout);
+    for line in [
+        "rfcl_curriculum_reports_refused_total{reason=\"over_time_limit\"} 2",
+        "rfcl_curriculum_reports_refused_total{reason=\"not_holder\"} 1",
+    ] {
+        assert!(metrics.contains(line), "{line} missing from {metrics}");
+    }
+    // Its holder's report still applies, with the steps it claims.
+    let ack = client
+        .report(report_for(&lease, true, 1.0))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(ack.applied);
+    assert_eq!(
+        state_view(&mut client).await.env_steps,
+        u64::from(lease.time_limit.min(20))
+    );
+}
+
+/// Posts one gRPC frame that declares a message of `declared_len` bytes to `method` with curl
+/// (the generated clients cannot send more than their message holds); returns the response
+/// headers and trailers. At most 64 bytes of the message are sent: the server must refuse on the
+/// declared length, before reading the body (and curl gives up on a stream that the server resets
+/// while the body is still being sent).
+fn raw_grpc_call(server: &ServerProcess, method: &str, declared_len: usize) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let body = dir.path().join("body");
+    let mut frame = vec![0u8];
+    frame.extend_from_slice(&(declared_len as u32).to_be_bytes());
+    frame.resize(5 + declared_len.min(64), 0);
+    std::fs::write(&body, frame).unwrap();
+    let out = std::process::Command::new("curl")
+        .args([
+            "-sS",
+            "--http2-prior-knowledge",
+            "-X",
+            "POST",
+            "-H",
+            "content-type: application/grpc",
+            "-H",
+            "te: trailers",
+            "-H",
+            &format!("authorization: Bearer {TEST_TOKEN}"),
+            "--data-binary",
+            &format!("@{}", body.display()),
+            "-D",
+            "-",
+            "-o",
+            "/dev/null",
+            &format!("{}/rfcl.v1.Curriculum/{method}", server.grpc),
+        ])
+        .output()
+        .unwrap();
+    format!(
+        "{}\n(curl: {}; {})",
+        String::from_utf8_lossy(&out.stdout),
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_oversized_request_is_refused_and_the_server_keeps_serving() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start_fresh(dir.path(), 30.0);
+    // The frame check itself: an empty GetState request gets through it.
+    let small = raw_grpc_call(&server, "GetState", 0);
+    assert!(small.contains("grpc-status: 0"), "{small}");
+    // 1 MiB is far beyond any request of this service (a few dozen bytes): refused on its
+    // declared length, OUT_OF_RANGE (tonic's code for a message over the limit) naming the limit.
+    let big = raw_grpc_call(&server, "ReportAndAcquire", 1 << 20);
+    assert!(big.contains("grpc-status: 11"), "{big}");
+    // grpc-message is percent-encoded.
+    assert!(big.contains("limit%20is:%2065536%20bytes"), "{big}");
+    // And the server goes on serving.
+    let mut client = server.client().await;
+    let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+    assert!(
+        client
+            .report(report_for(&lease, true, 1.0))
+            .await
+            .unwrap()
+            .into_inner()
+            .applied
+    );
+    assert_eq!(state_view(&mut client).await.episodes, 1);
+}

@@ -186,7 +186,8 @@ fn bench_grpc(
         stopping_rx.clone(),
         IngestCounters::new(),
         auth.guard.clone(),
-    );
+    )
+    .with_transition_batch(batch as u32);
     let measured = rt.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();

@@ -4,19 +4,26 @@
 //!
 //! Layout of `RUN_DIR/checkpoint/`:
 //!
-//! | file                            | contents                                                     |
-//! |---------------------------------|--------------------------------------------------------------|
-//! | `learner.json`                  | the manifest: counters, UTD limiter, RNG states, buffer positions, config, file names |
-//! | `networks.<gen>.safetensors`    | `actor/*`, `critic/*`, `target/*`, `temperature/log_alpha` in their own dtype |
-//! | `optimizers.<gen>.safetensors`  | `<actor|critic|temperature>/{step, exp_avg.*, exp_avg_sq.*}` (Adam) |
-//! | `replay.<gen>.bin`              | the stored rows of the online then the offline buffer: per buffer, fields obs, action, reward, mask, next_obs, `len` rows each, little-endian `f32` |
+//! | file                                  | contents                                               |
+//! |---------------------------------------|--------------------------------------------------------|
+//! | `learner.json`                        | the manifest: counters, UTD limiter, RNG states, buffer positions, config, the names, sizes and CRC-32Cs of every data file |
+//! | `networks.<gen>.safetensors`          | `actor/*`, `critic/*`, `target/*`, `temperature/log_alpha` in their own dtype |
+//! | `optimizers.<gen>.safetensors`        | `<actor|critic|temperature>/{step, exp_avg.*, exp_avg_sq.*}` (Adam) |
+//! | `replay.<gen>.<buffer>.<k>.bin`       | segment k of the `online` or `offline` buffer: its rows [k·N, min((k+1)·N, len)) as fields obs, action, reward, mask, next_obs, little-endian `f32`; N = the buffer's `segment_rows` ([`SEGMENT_ROWS`](crate::replay::SEGMENT_ROWS)) |
+//!
+//! `<gen>` is the generation that wrote the file. The replay is written by segments so that a
+//! checkpoint writes only what changed: a segment no push touched since the checkpoint that wrote
+//! it keeps its file (the manifest of the next generation names it again), and one that was pushed
+//! into (new rows, or old ones overwritten once the ring wrapped) is written anew. A buffer moved
+//! at the stage transition keeps its files.
 //!
 //! Commit protocol: the data files of generation `gen` are written under new names and fsynced,
 //! then the manifest is replaced atomically ([`rfcl_core::atomic::atomic_write`]); only then are
-//! older generations deleted. A `kill -9` at any moment leaves the previous checkpoint or the new
-//! one, never a mix.
+//! the files no manifest names any more deleted. A `kill -9` at any moment leaves the previous
+//! checkpoint or the new one, never a mix.
+use std::collections::HashSet;
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Write};
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use rand_chacha::ChaCha8Rng;
@@ -25,30 +32,37 @@ use tch::{Device, Tensor};
 use thiserror::Error;
 
 use crate::limiter::UtdLimiter;
-use crate::replay::{Replay, ReplayBuffer};
+use crate::replay::{Replay, ReplayBuffer, SegmentFile};
 use crate::sac::Sac;
 
 /// The manifest's `format`.
-pub const FORMAT: &str = "rfcl-learner-checkpoint-v1";
+pub const FORMAT: &str = "rfcl-learner-checkpoint-v2";
 pub const MANIFEST: &str = "learner.json";
 
+/// Causes are sources, never repeated in the message: `{:#}` (anyhow) and
+/// [`crate::error::chain`] print each once.
 #[derive(Debug, Error)]
 pub enum CheckpointError {
-    #[error("{path}: {source}")]
+    #[error("{}", path.display())]
     Io {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("{path}: not a learner checkpoint manifest: {source}")]
+    #[error("{}: not a learner checkpoint manifest", path.display())]
     Manifest {
         path: PathBuf,
         source: serde_json::Error,
     },
-    #[error("{path}: format {got:?}, this learner reads {FORMAT:?}")]
+    #[error("{}: format {got:?}, this learner reads {FORMAT:?}", path.display())]
     Format { path: PathBuf, got: String },
     #[error("checkpoint does not fit this learner: {0}")]
     Mismatch(String),
-    #[error("libtorch: {0}")]
+    #[error("{}: {problem}", path.display())]
+    Corrupt { path: PathBuf, problem: String },
+    /// Refused: a checkpoint never holds weights a resumed run could not continue from.
+    #[error("refusing to checkpoint non-finite (NaN or infinite) values in tensor {tensor}")]
+    NonFinite { tensor: String },
+    #[error("libtorch")]
     Torch(#[from] tch::TchError),
     #[error(transparent)]
     Learner(#[from] crate::error::LearnerError),
@@ -86,22 +100,15 @@ pub struct Progress {
     pub wall_ms: u64,
 }
 
-/// Position of one replay ring.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+/// Position of one replay ring and the files of its segments.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct BufferMeta {
     pub capacity: usize,
     pub len: usize,
     pub cursor: usize,
-}
-
-impl BufferMeta {
-    fn of(buffer: &ReplayBuffer) -> Self {
-        Self {
-            capacity: buffer.capacity(),
-            len: buffer.len(),
-            cursor: buffer.cursor(),
-        }
-    }
+    pub segment_rows: usize,
+    /// One per stored segment, in order (`ceil(len / segment_rows)` of them).
+    pub segments: Vec<SegmentFile>,
 }
 
 /// `learner.json`.
@@ -122,8 +129,29 @@ pub struct Manifest {
     pub offline: Option<BufferMeta>,
     pub networks_file: String,
     pub optimizers_file: String,
-    pub replay_file: String,
+    /// Bytes of all replay segment files this checkpoint names.
     pub replay_bytes: u64,
+}
+
+impl Manifest {
+    /// Every data file this checkpoint needs.
+    pub fn files(&self) -> impl Iterator<Item = &str> {
+        let segments = std::iter::once(&self.online)
+            .chain(self.offline.as_ref())
+            .flat_map(|b| b.segments.iter().map(|s| s.file.as_str()));
+        [self.networks_file.as_str(), self.optimizers_file.as_str()]
+            .into_iter()
+            .chain(segments)
+    }
+}
+
+/// What [`save`] wrote.
+#[derive(Debug, Clone)]
+pub struct Saved {
+    pub manifest: Manifest,
+    /// Replay segment files written by this checkpoint (the others were kept).
+    pub replay_files_written: usize,
+    pub replay_bytes_written: u64,
 }
 
 /// What a checkpoint holds besides the agent and the buffers.
@@ -161,18 +189,64 @@ pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>> {
     Ok(Some(manifest))
 }
 
-/// Writes a checkpoint of `sac`, `replay` and `extras` into `dir` (see the module docs).
-/// Returns the manifest written.
-pub fn save(dir: &Path, sac: &Sac, replay: &Replay, extras: &Extras<'_>) -> Result<Manifest> {
+/// Writes a checkpoint of `sac`, `replay` and `extras` into `dir` (see the module docs): the
+/// replay segments changed since the last checkpoint into `dir`, the others are named again. The
+/// buffers remember which file holds each segment once the manifest is committed.
+pub fn save(dir: &Path, sac: &Sac, replay: &mut Replay, extras: &Extras<'_>) -> Result<Saved> {
     std::fs::create_dir_all(dir).map_err(io(dir))?;
     let generation = read_manifest(dir)?.map_or(1, |m| m.generation + 1);
     let networks_file = format!("networks.{generation}.safetensors");
     let optimizers_file = format!("optimizers.{generation}.safetensors");
-    let replay_file = format!("replay.{generation}.bin");
 
-    write_tensors(&dir.join(&networks_file), &network_tensors(sac))?;
-    write_tensors(&dir.join(&optimizers_file), &optimizer_tensors(sac))?;
-    let replay_bytes = write_replay(&dir.join(&replay_file), replay)?;
+    let networks = network_tensors(sac);
+    let optimizers = optimizer_tensors(sac);
+    for (name, t) in networks.iter().chain(&optimizers) {
+        if !all_finite(t)? {
+            return Err(CheckpointError::NonFinite {
+                tensor: name.clone(),
+            });
+        }
+    }
+    write_tensors(&dir.join(&networks_file), &networks)?;
+    write_tensors(&dir.join(&optimizers_file), &optimizers)?;
+
+    // (buffer, segment, file) of the segments written now: recorded in the buffers only once the
+    // manifest naming them is committed.
+    let mut written: Vec<(usize, usize, SegmentFile)> = Vec::new();
+    let mut metas = Vec::new();
+    for (b, buffer) in buffers(replay).enumerate() {
+        let mut segments = Vec::with_capacity(buffer.stored_segments());
+        for k in 0..buffer.stored_segments() {
+            let kept = buffer
+                .saved_segment(k)
+                .filter(|f| file_has_size(&dir.join(&f.file), f.bytes));
+            let file = match kept {
+                Some(file) => file.clone(),
+                None => {
+                    let name = format!("replay.{generation}.{}.{k}.bin", buffer.name());
+                    let file = write_segment(&dir.join(&name), name, buffer, k)?;
+                    written.push((b, k, file.clone()));
+                    file
+                }
+            };
+            segments.push(file);
+        }
+        metas.push(BufferMeta {
+            capacity: buffer.capacity(),
+            len: buffer.len(),
+            cursor: buffer.cursor(),
+            segment_rows: buffer.segment_rows(),
+            segments,
+        });
+    }
+    let mut metas = metas.into_iter();
+    let online = metas.next().expect("the online buffer");
+    let offline = metas.next();
+    let replay_bytes = std::iter::once(&online)
+        .chain(offline.as_ref())
+        .flat_map(|m| &m.segments)
+        .map(|f| f.bytes)
+        .sum();
 
     let manifest = Manifest {
         format: FORMAT.into(),
@@ -185,18 +259,50 @@ pub fn save(dir: &Path, sac: &Sac, replay: &Replay, extras: &Extras<'_>) -> Resu
         limiter: extras.limiter.clone(),
         sac_rng: sac.rng().clone(),
         replay_rng: replay.rng().clone(),
-        online: BufferMeta::of(&replay.online),
-        offline: replay.offline.as_ref().map(BufferMeta::of),
+        online,
+        offline,
         networks_file,
         optimizers_file,
-        replay_file,
         replay_bytes,
     };
     let path = dir.join(MANIFEST);
     let json = serde_json::to_vec_pretty(&manifest).expect("a manifest serialises");
     rfcl_core::atomic::atomic_write(&path, &json).map_err(io(&path))?;
-    remove_other_generations(dir, &manifest);
-    Ok(manifest)
+
+    let saved = Saved {
+        replay_files_written: written.len(),
+        replay_bytes_written: written.iter().map(|(_, _, f)| f.bytes).sum(),
+        manifest,
+    };
+    for (b, k, file) in written {
+        let buffer = if b == 0 {
+            &mut replay.online
+        } else {
+            replay
+                .offline
+                .as_mut()
+                .expect("written from the offline buffer")
+        };
+        buffer.set_saved_segment(k, file);
+    }
+    remove_unnamed(dir, &saved.manifest);
+    Ok(saved)
+}
+
+fn buffers(replay: &Replay) -> impl Iterator<Item = &ReplayBuffer> {
+    std::iter::once(&replay.online).chain(replay.offline.as_ref())
+}
+
+fn file_has_size(path: &Path, bytes: u64) -> bool {
+    std::fs::metadata(path).is_ok_and(|m| m.len() == bytes)
+}
+
+/// Whether every value of `t` is finite (integer tensors always are).
+pub fn all_finite(t: &Tensor) -> Result<bool> {
+    if !t.is_floating_point() {
+        return Ok(true);
+    }
+    Ok(t.f_isfinite()?.f_all()?.f_int64_value(&[])? != 0)
 }
 
 /// Restores the agent's weights, optimiser states and RNG from a checkpoint into `sac` (built with
@@ -250,21 +356,11 @@ pub fn restore(dir: &Path, manifest: &Manifest, sac: &mut Sac) -> Result<Replay>
     sac.set_rng(manifest.sac_rng.clone());
 
     let (d, a) = (manifest.obs_dim, manifest.action_dim);
-    let path = dir.join(&manifest.replay_file);
-    let file = File::open(&path).map_err(io(&path))?;
-    let size = file.metadata().map_err(io(&path))?.len();
-    if size != manifest.replay_bytes {
-        return Err(CheckpointError::Mismatch(format!(
-            "{} is {size} bytes, the manifest says {}",
-            path.display(),
-            manifest.replay_bytes
-        )));
-    }
-    let mut reader = BufReader::with_capacity(1 << 20, file);
-    let online = read_buffer(&mut reader, &path, "online", manifest.online, d, a)?;
+    let online = read_buffer(dir, "online", &manifest.online, d, a)?;
     let offline = manifest
         .offline
-        .map(|meta| read_buffer(&mut reader, &path, "offline", meta, d, a))
+        .as_ref()
+        .map(|meta| read_buffer(dir, "offline", meta, d, a))
         .transpose()?;
     let mut replay = Replay::new(online, offline, 0);
     replay.set_rng(manifest.replay_rng.clone());
@@ -334,55 +430,118 @@ fn widths(d: usize, a: usize) -> [usize; 5] {
     [d, a, 1, 1, d]
 }
 
-fn write_replay(path: &Path, replay: &Replay) -> Result<u64> {
+/// Writes segment `k` of `buffer` to `path` (fsynced): each field's rows of the segment in turn.
+fn write_segment(
+    path: &Path,
+    name: String,
+    buffer: &ReplayBuffer,
+    k: usize,
+) -> Result<SegmentFile> {
+    let rows = buffer.segment_range(k);
     let file = File::create(path).map_err(io(path))?;
     let mut out = BufWriter::with_capacity(1 << 20, file);
-    let mut bytes = 0u64;
-    for buffer in std::iter::once(&replay.online).chain(replay.offline.as_ref()) {
-        let w = widths(buffer.obs_dim(), buffer.action_dim());
-        for (field, width) in buffer.storage().into_iter().zip(w) {
-            for chunk in field[..buffer.len() * width].chunks(1 << 16) {
-                let raw: Vec<u8> = chunk.iter().flat_map(|v| v.to_le_bytes()).collect();
-                out.write_all(&raw).map_err(io(path))?;
-                bytes += raw.len() as u64;
+    let (mut bytes, mut crc) = (0u64, 0u32);
+    let mut raw = Vec::with_capacity(4 << 14);
+    let w = widths(buffer.obs_dim(), buffer.action_dim());
+    for (field, width) in buffer.storage().into_iter().zip(w) {
+        for chunk in field[rows.start * width..rows.end * width].chunks(1 << 14) {
+            raw.clear();
+            for v in chunk {
+                raw.extend_from_slice(&v.to_le_bytes());
             }
+            crc = crc32c::crc32c_append(crc, &raw);
+            out.write_all(&raw).map_err(io(path))?;
+            bytes += raw.len() as u64;
         }
     }
     let file = out.into_inner().map_err(|e| io(path)(e.into_error()))?;
     file.sync_all().map_err(io(path))?;
-    Ok(bytes)
+    Ok(SegmentFile {
+        file: name,
+        rows: rows.len(),
+        bytes,
+        crc32c: crc,
+    })
 }
 
+/// A buffer as the manifest describes it, each segment checked (rows, size, CRC) and read into
+/// place; the buffer then knows its segments are saved.
 fn read_buffer(
-    reader: &mut impl Read,
-    path: &Path,
+    dir: &Path,
     name: &'static str,
-    meta: BufferMeta,
+    meta: &BufferMeta,
     d: usize,
     a: usize,
 ) -> Result<ReplayBuffer> {
     let mut buffer = ReplayBuffer::new(name, meta.capacity, d, a)?;
-    let fields = buffer.restore_storage(meta.len, meta.cursor)?;
-    let mut raw = vec![0u8; 4 << 16];
-    for (field, width) in fields.into_iter().zip(widths(d, a)) {
-        for chunk in field[..meta.len * width].chunks_mut(1 << 16) {
-            let raw = &mut raw[..chunk.len() * 4];
-            reader.read_exact(raw).map_err(io(path))?;
-            for (v, b) in chunk.iter_mut().zip(raw.chunks_exact(4)) {
+    buffer.set_segment_rows(meta.segment_rows)?;
+    let expected = meta.len.div_ceil(meta.segment_rows);
+    if meta.segments.len() != expected {
+        return Err(CheckpointError::Mismatch(format!(
+            "the {name} buffer holds {} rows in segments of {}: {expected} segment files expected, the manifest names {}",
+            meta.len,
+            meta.segment_rows,
+            meta.segments.len()
+        )));
+    }
+    let ranges: Vec<_> = (0..expected)
+        .map(|k| (k * meta.segment_rows)..((k + 1) * meta.segment_rows).min(meta.len))
+        .collect();
+    let widths = widths(d, a);
+    let mut fields = buffer.restore_storage(meta.len, meta.cursor)?;
+    for (segment, rows) in meta.segments.iter().zip(&ranges) {
+        let path = dir.join(&segment.file);
+        let row_bytes: usize = widths.iter().sum::<usize>() * 4;
+        let want = (rows.len() * row_bytes) as u64;
+        if segment.rows != rows.len() || segment.bytes != want {
+            return Err(CheckpointError::Corrupt {
+                path,
+                problem: format!(
+                    "the manifest says {} rows / {} bytes; rows {}..{} of the {name} buffer are {} rows / {want} bytes",
+                    segment.rows,
+                    segment.bytes,
+                    rows.start,
+                    rows.end,
+                    rows.len()
+                ),
+            });
+        }
+        let raw = std::fs::read(&path).map_err(io(&path))?;
+        if raw.len() as u64 != want {
+            return Err(CheckpointError::Corrupt {
+                path,
+                problem: format!("{} bytes, the manifest says {want}", raw.len()),
+            });
+        }
+        let crc = crc32c::crc32c(&raw);
+        if crc != segment.crc32c {
+            return Err(CheckpointError::Corrupt {
+                path,
+                problem: format!(
+                    "CRC-32C {crc:#010x}, the manifest says {:#010x}",
+                    segment.crc32c
+                ),
+            });
+        }
+        let mut at = 0;
+        for (field, &width) in fields.iter_mut().zip(&widths) {
+            let dst = &mut field[rows.start * width..rows.end * width];
+            let n = dst.len() * 4;
+            for (v, b) in dst.iter_mut().zip(raw[at..at + n].chunks_exact(4)) {
                 *v = f32::from_le_bytes(b.try_into().expect("4 bytes"));
             }
+            at += n;
         }
+    }
+    for (k, segment) in meta.segments.iter().enumerate() {
+        buffer.set_saved_segment(k, segment.clone());
     }
     Ok(buffer)
 }
 
-/// Deletes data files of generations other than the manifest's (best effort).
-fn remove_other_generations(dir: &Path, manifest: &Manifest) {
-    let keep = [
-        &manifest.networks_file,
-        &manifest.optimizers_file,
-        &manifest.replay_file,
-    ];
+/// Deletes the data files the manifest does not name (best effort; each failure logged).
+fn remove_unnamed(dir: &Path, manifest: &Manifest) {
+    let keep: HashSet<&str> = manifest.files().collect();
     let Ok(entries) = std::fs::read_dir(dir) else {
         return;
     };
@@ -391,7 +550,7 @@ fn remove_other_generations(dir: &Path, manifest: &Manifest) {
         let ours = ["networks.", "optimizers.", "replay."]
             .iter()
             .any(|p| name.starts_with(p));
-        if ours && !keep.iter().any(|k| **k == name) {
+        if ours && !keep.contains(name.as_str()) {
             if let Err(e) = std::fs::remove_file(entry.path()) {
                 tracing::warn!("removing the old checkpoint file {name}: {e}");
             }
@@ -481,10 +640,15 @@ mod tests {
             progress: &progress,
             limiter: &limiter,
         };
-        save(dir.path(), &sac, &replay, &extras).unwrap();
-        // A second save replaces the first generation's files.
-        let manifest = save(dir.path(), &sac, &replay, &extras).unwrap();
-        assert_eq!(manifest.generation, 2);
+        save(dir.path(), &sac, &mut replay, &extras).unwrap();
+        // A second save replaces the first generation's network files and keeps the replay
+        // segments nothing was pushed into since.
+        let saved = save(dir.path(), &sac, &mut replay, &extras).unwrap();
+        assert_eq!(saved.manifest.generation, 2);
+        assert_eq!(
+            (saved.replay_files_written, saved.replay_bytes_written),
+            (0, 0)
+        );
         let mut names: Vec<String> = std::fs::read_dir(dir.path())
             .unwrap()
             .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
@@ -496,7 +660,8 @@ mod tests {
                 "learner.json",
                 "networks.2.safetensors",
                 "optimizers.2.safetensors",
-                "replay.2.bin"
+                "replay.1.offline.0.bin",
+                "replay.1.online.0.bin",
             ]
         );
 
@@ -540,6 +705,218 @@ mod tests {
             &network_tensors(&sac),
             &network_tensors(&fresh)
         ));
+    }
+
+    fn extras_for<'a>(progress: &'a Progress, limiter: &'a UtdLimiter) -> Extras<'a> {
+        Extras {
+            run_name: "t",
+            config_yaml: "name: t\n",
+            progress,
+            limiter,
+        }
+    }
+
+    fn push_rows(buffer: &mut ReplayBuffer, range: std::ops::Range<usize>) {
+        for i in range {
+            let x = i as f32;
+            buffer
+                .push(
+                    &[x, -x, x * 0.5],
+                    &[0.1 * x, 0.2],
+                    x,
+                    1.0,
+                    &[x + 1.0, 0.0, 2.0],
+                )
+                .unwrap();
+        }
+    }
+
+    fn replay_files(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .filter(|n| n.starts_with("replay."))
+            .collect();
+        names.sort();
+        names
+    }
+
+    fn assert_same_buffer(a: &ReplayBuffer, b: &ReplayBuffer) {
+        assert_eq!(
+            (a.len(), a.cursor(), a.capacity(), a.segment_rows()),
+            (b.len(), b.cursor(), b.capacity(), b.segment_rows())
+        );
+        assert_eq!(a.storage(), b.storage());
+    }
+
+    #[test]
+    fn a_checkpoint_after_a_few_new_rows_writes_only_the_changed_segment() {
+        let (cfg, net) = small();
+        let sac = Sac::new(3, 2, &cfg, &net, 5).unwrap();
+        let mut online = ReplayBuffer::new("online", 100, 3, 2).unwrap();
+        online.set_segment_rows(10).unwrap();
+        push_rows(&mut online, 0..35);
+        let mut offline = ReplayBuffer::new("offline", 12, 3, 2).unwrap();
+        offline.set_segment_rows(10).unwrap();
+        push_rows(&mut offline, 100..112);
+        let mut replay = Replay::new(online, Some(offline), 1);
+        let (progress, limiter) = (Progress::default(), UtdLimiter::new(UtdMode::Sync, 4, 2, 0));
+        let dir = tempfile::tempdir().unwrap();
+
+        let first = save(
+            dir.path(),
+            &sac,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        let row = ReplayBuffer::record_bytes(3, 2) as u64;
+        assert_eq!(first.replay_files_written, 4 + 2);
+        assert_eq!(first.replay_bytes_written, (35 + 12) * row);
+
+        // Rows 35..38 land in online segment 3 (rows 30..40): only it is written again.
+        push_rows(&mut replay.online, 35..38);
+        let second = save(
+            dir.path(),
+            &sac,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        assert_eq!(second.replay_files_written, 1);
+        assert_eq!(second.replay_bytes_written, 8 * row);
+        assert_eq!(second.manifest.replay_bytes, (38 + 12) * row);
+        assert_eq!(
+            replay_files(dir.path()),
+            [
+                "replay.1.offline.0.bin",
+                "replay.1.offline.1.bin",
+                "replay.1.online.0.bin",
+                "replay.1.online.1.bin",
+                "replay.1.online.2.bin",
+                "replay.2.online.3.bin",
+            ]
+        );
+        // Nothing new: nothing written.
+        let third = save(
+            dir.path(),
+            &sac,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        assert_eq!(third.replay_files_written, 0);
+
+        let manifest = read_manifest(dir.path()).unwrap().unwrap();
+        let mut fresh = Sac::new(3, 2, &cfg, &net, 99).unwrap();
+        let restored = restore(dir.path(), &manifest, &mut fresh).unwrap();
+        assert_same_buffer(&replay.online, &restored.online);
+        assert_same_buffer(
+            replay.offline.as_ref().unwrap(),
+            restored.offline.as_ref().unwrap(),
+        );
+    }
+
+    #[test]
+    fn a_wrapped_buffer_round_trips_exactly_and_rewrites_only_overwritten_segments() {
+        let (cfg, net) = small();
+        let sac = Sac::new(3, 2, &cfg, &net, 5).unwrap();
+        // Capacity 10 in segments of 4: rows 0-3, 4-7, 8-9.
+        let mut online = ReplayBuffer::new("online", 10, 3, 2).unwrap();
+        online.set_segment_rows(4).unwrap();
+        push_rows(&mut online, 0..23);
+        assert_eq!((online.len(), online.cursor()), (10, 3));
+        let mut replay = Replay::new(online, None, 1);
+        let (progress, limiter) = (Progress::default(), UtdLimiter::new(UtdMode::Sync, 4, 2, 0));
+        let dir = tempfile::tempdir().unwrap();
+        let first = save(
+            dir.path(),
+            &sac,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        assert_eq!(first.replay_files_written, 3);
+
+        // Slots 3, 4, 5 are overwritten: segments 0 and 1 change, segment 2 does not.
+        push_rows(&mut replay.online, 23..26);
+        let second = save(
+            dir.path(),
+            &sac,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        assert_eq!(second.replay_files_written, 2);
+        assert_eq!(
+            replay_files(dir.path()),
+            [
+                "replay.1.online.2.bin",
+                "replay.2.online.0.bin",
+                "replay.2.online.1.bin"
+            ]
+        );
+
+        let manifest = read_manifest(dir.path()).unwrap().unwrap();
+        let mut fresh = Sac::new(3, 2, &cfg, &net, 99).unwrap();
+        let mut restored = restore(dir.path(), &manifest, &mut fresh).unwrap();
+        assert_same_buffer(&replay.online, &restored.online);
+        assert_eq!(replay.sample(2, 4).unwrap(), restored.sample(2, 4).unwrap());
+        // The restored buffer knows its files: its next checkpoint writes no replay segment.
+        let again = save(
+            dir.path(),
+            &fresh,
+            &mut restored,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        assert_eq!(again.replay_files_written, 0);
+
+        // A damaged segment is refused, naming the file.
+        let path = dir.path().join("replay.2.online.1.bin");
+        let mut raw = std::fs::read(&path).unwrap();
+        raw[5] ^= 0x40;
+        std::fs::write(&path, raw).unwrap();
+        let manifest = read_manifest(dir.path()).unwrap().unwrap();
+        let err = restore(dir.path(), &manifest, &mut fresh).unwrap_err();
+        assert!(
+            matches!(&err, CheckpointError::Corrupt { path: p, problem } if p == &path && problem.contains("CRC-32C")),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn non_finite_weights_are_never_checkpointed() {
+        let (cfg, net) = small();
+        let sac = Sac::new(3, 2, &cfg, &net, 5).unwrap();
+        let mut replay = filled_replay(1);
+        let (progress, limiter) = (Progress::default(), UtdLimiter::new(UtdMode::Sync, 4, 2, 0));
+        let dir = tempfile::tempdir().unwrap();
+        let first = save(
+            dir.path(),
+            &sac,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        let (name, var) = sac.critic_vars().variables().into_iter().next().unwrap();
+        tch::no_grad(|| {
+            let _ = var.shallow_clone().fill_(f64::NAN);
+        });
+        let err = save(
+            dir.path(),
+            &sac,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap_err();
+        assert!(
+            matches!(&err, CheckpointError::NonFinite { tensor } if *tensor == format!("critic/{name}")),
+            "{err}"
+        );
+        // The previous checkpoint is untouched.
+        let manifest = read_manifest(dir.path()).unwrap().unwrap();
+        assert_eq!(manifest.generation, first.manifest.generation);
     }
 
     #[test]

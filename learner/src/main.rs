@@ -291,7 +291,8 @@ async fn run(args: Args) -> Result<()> {
         stopping_rx.clone(),
         counters.clone(),
         server_auth.guard.clone(),
-    );
+    )
+    .with_transition_batch(cfg.service.transition_batch);
 
     let metrics_field = match metrics_listener {
         Some((listener, at)) => {

@@ -42,10 +42,11 @@ use crate::sac::Sac;
 /// The `format` metadata value of actor weights written by [`encode_actor`].
 pub const FORMAT: &str = "rfcl-actor-v1";
 
-/// Why policy weights could not be encoded or loaded.
+/// Why policy weights could not be encoded or loaded. Causes are sources, never repeated in the
+/// message (see [`crate::error`]).
 #[derive(Debug, Error)]
 pub enum PolicyError {
-    #[error("policy weights are not valid safetensors: {0}")]
+    #[error("policy weights are not valid safetensors")]
     Safetensors(#[from] safetensors::SafeTensorError),
     #[error("policy weights lack tensor {0:?} of the actor network")]
     Missing(String),
@@ -61,14 +62,14 @@ pub enum PolicyError {
     Dtype { name: String, dtype: Dtype },
     #[error("invalid policy shape: {0}")]
     Config(String),
-    #[error("policy description (policy.json): {0}")]
+    #[error("policy description (policy.json)")]
     Description(#[from] serde_json::Error),
-    #[error("{path}: {source}")]
+    #[error("{path}")]
     Io {
         path: String,
         source: std::io::Error,
     },
-    #[error("libtorch: {0}")]
+    #[error("libtorch")]
     Torch(#[from] tch::TchError),
 }
 

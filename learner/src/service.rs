@@ -20,6 +20,14 @@
 //! * `Health`: critic updates (`updates`), env steps received and stored, policy version, read
 //!   together at one consistent point of the training loop; `ok` is false once training failed;
 //!   and the records and batches taken in per transport ([`IngestCounters`]).
+//!
+//! Message limits: tonic sets its decoding limit per service, not per RPC, and every RPC of this
+//! service but `PushTransitions` carries a few hundred bytes. The limit is therefore the largest
+//! `TransitionBatch` an actor sends ([`max_request_bytes`]: `service.transition_batch` records
+//! with a 2× margin, plus 64 KiB for the rest), not the 256 MB that let each concurrent caller make
+//! the learner buffer a huge request. A larger request is refused before it is buffered whole: a
+//! `TransitionBatch` with `RESOURCE_EXHAUSTED`, counted as a refused batch; a unary request with
+//! tonic's own `OUT_OF_RANGE` (it is decoded before any handler runs).
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::atomic::Ordering;
@@ -40,8 +48,20 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::ingest::{validate_batch, IngestCounters, IngestItem, StreamTally, Transport};
 use crate::trainer::LearnerStatus;
 
-/// Largest gRPC message accepted or sent (transition batches, policy weights of wide networks).
+/// Largest gRPC message sent (policy weights of wide networks). What the learner accepts is
+/// [`max_request_bytes`].
 pub const MAX_MESSAGE_BYTES: usize = 256 << 20;
+
+/// Room for the requests other than `PushTransitions` (run info, policy watch, health: all a few
+/// hundred bytes) and for a `TransitionBatch`'s own fields.
+pub const SMALL_REQUEST_BYTES: usize = 64 << 10;
+
+/// The decoding limit of the learner service: a `TransitionBatch` of twice `transition_batch`
+/// records of `layout` (actors send at most `transition_batch`; the margin keeps a learner and
+/// actors whose configs differ a little working) plus [`SMALL_REQUEST_BYTES`].
+pub fn max_request_bytes(layout: RecordLayout, transition_batch: u32) -> usize {
+    2 * transition_batch.max(1) as usize * layout.record_bytes() + SMALL_REQUEST_BYTES
+}
 
 /// HTTP/2 receive window per stream (the protocol's default, 64 KiB, instead of hyper's 1 MiB):
 /// what a remote actor may have in flight on its PushTransitions stream beyond what the learner
@@ -97,6 +117,8 @@ pub struct LearnerService {
     counters: Arc<IngestCounters>,
     /// The token check of this service: Health reports its refusals.
     guard: Guard,
+    /// `service.transition_batch`: sizes the decoding limit ([`max_request_bytes`]).
+    transition_batch: u32,
 }
 
 impl LearnerService {
@@ -119,14 +141,58 @@ impl LearnerService {
             stopping,
             counters,
             guard,
+            transition_batch: rfcl_core::config::ServiceConfig::default().transition_batch,
         }
     }
 
-    /// The tonic service with this crate's message limits.
+    /// Sizes the decoding limit for batches of `rows` records (`service.transition_batch`).
+    pub fn with_transition_batch(mut self, rows: u32) -> Self {
+        self.transition_batch = rows;
+        self
+    }
+
+    /// The largest request this service decodes ([`max_request_bytes`]).
+    pub fn max_request_bytes(&self) -> usize {
+        max_request_bytes(self.layout, self.transition_batch)
+    }
+
+    /// The tonic service with this crate's message limits (module docs).
     pub fn into_server(self) -> LearnerServer<Self> {
+        let limit = self.max_request_bytes();
         LearnerServer::new(self)
-            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_decoding_message_size(limit)
             .max_encoding_message_size(MAX_MESSAGE_BYTES)
+    }
+}
+
+impl LearnerService {
+    /// tonic answers a message over the decoding limit OUT_OF_RANGE; gRPC's code for it is
+    /// RESOURCE_EXHAUSTED, which is what an actor gets for an oversized batch (counted as a
+    /// refused batch). Other errors pass unchanged.
+    fn refuse_oversized(&self, status: Status) -> Status {
+        let oversized = matches!(
+            status.code(),
+            tonic::Code::OutOfRange | tonic::Code::ResourceExhausted
+        ) && status.message().contains("too large");
+        if !oversized {
+            return status;
+        }
+        self.counters
+            .grpc
+            .refused_batches
+            .fetch_add(1, Ordering::Relaxed);
+        let limit = self.max_request_bytes();
+        tracing::warn!(
+            "refused a TransitionBatch over the {limit} B limit (service.transition_batch = {} records): {}",
+            self.transition_batch,
+            status.message()
+        );
+        Status::resource_exhausted(format!(
+            "TransitionBatch: {}; the learner takes batches up to {limit} B (service.transition_batch = {} records of {} B, with a 2x margin)",
+            status.message(),
+            self.transition_batch,
+            self.layout.record_bytes()
+        ))
     }
 }
 
@@ -177,7 +243,7 @@ impl Learner for LearnerService {
         let mut queued = 0u64;
         loop {
             let message = tokio::select! {
-                m = stream.message() => m?,
+                m = stream.message() => m.map_err(|status| self.refuse_oversized(status))?,
                 _ = stopping.wait_for(|s| *s) => return Err(shutting_down()),
             };
             let Some(batch) = message else { break };

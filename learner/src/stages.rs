@@ -17,12 +17,12 @@ pub const RECONNECT_EVERY: Duration = Duration::from_secs(1);
 
 #[derive(Debug, Error)]
 pub enum StageWatchError {
-    #[error("invalid curriculum server address {addr:?}: {source}")]
+    #[error("invalid curriculum server address {addr:?}")]
     Address {
         addr: String,
         source: tonic::transport::Error,
     },
-    #[error("cannot reach the curriculum server at {addr}: {source}")]
+    #[error("cannot reach the curriculum server at {addr}")]
     Connect {
         addr: String,
         source: tonic::transport::Error,
@@ -122,7 +122,7 @@ pub async fn follow(
                     stream = next;
                     break;
                 }
-                Err(e) => tracing::debug!("{e}"),
+                Err(e) => tracing::debug!("{}", crate::error::chain(&e)),
             }
         }
     }

@@ -7,7 +7,9 @@
 //! 1. stage events that arrived, the shutdown flag;
 //! 2. an iteration the limiter says is due (`sync`: exactly one per K received env steps past the
 //!    warm-up; `async`: flat out once past the warm-up);
-//! 3. the metrics row, then the checkpoint, when their env-step boundary is reached;
+//! 3. the metrics row, then the checkpoint, when their env-step boundary is reached; a checkpoint
+//!    also when `sac.save_every_s` seconds passed since the last one and anything changed (it
+//!    writes only the replay's changed segments, so it is cheap enough to take every minute);
 //! 4. the budget (`train.steps`);
 //! 5. more records: the ingest stops at the next boundary (an iteration due, a metrics row, a
 //!    checkpoint, the budget), so each of them happens at an exact env-step count and a resumed
@@ -22,6 +24,11 @@
 //! policy", so an actor with none asks `WatchPolicy` for versions after 0); every iteration
 //! publishes the next version with the env steps received so far, so version v follows v − 1
 //! iterations. A resumed learner publishes its restored version first.
+//!
+//! Divergence: every iteration's losses are checked, and the weights before each publication,
+//! checkpoint and export; the first NaN or infinity stops the run with
+//! [`TrainError::NonFiniteLoss`] / [`TrainError::NonFiniteWeights`] (the process exits non-zero),
+//! so non-finite weights are never published, exported or checkpointed.
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -48,19 +55,41 @@ use crate::tensorboard::EventWriter;
 /// How often the training thread logs its progress line (stderr).
 pub const REPORT_EVERY: Duration = Duration::from_secs(10);
 
+/// Causes are sources, never repeated in the message (see [`crate::error`]).
 #[derive(Debug, Error)]
 pub enum TrainError {
     #[error(transparent)]
     Learner(#[from] LearnerError),
-    #[error("checkpoint: {0}")]
+    #[error("checkpoint")]
     Checkpoint(#[from] CheckpointError),
-    #[error("policy: {0}")]
+    #[error("policy")]
     Policy(#[from] PolicyError),
-    #[error("{what} {path}: {source}")]
+    #[error("{what} {}", path.display())]
     Io {
         what: &'static str,
         path: PathBuf,
         source: std::io::Error,
+    },
+    /// A loss of an iteration is NaN or infinite: training diverged.
+    #[error(
+        "training diverged: the {loss} is {value} in the iteration of critic updates {first_update}-{last_update} (env step {env_steps}); stopped before publishing, exporting or checkpointing its weights (lower the learning rates?)"
+    )]
+    NonFiniteLoss {
+        loss: &'static str,
+        value: f64,
+        first_update: u64,
+        last_update: u64,
+        env_steps: u64,
+    },
+    /// Weights hold a NaN or an infinity.
+    #[error(
+        "training diverged: {tensor} holds NaN or infinite values after critic update {critic_updates} (env step {env_steps}); refusing to {action} them"
+    )]
+    NonFiniteWeights {
+        tensor: String,
+        action: &'static str,
+        critic_updates: u64,
+        env_steps: u64,
     },
 }
 
@@ -187,6 +216,9 @@ pub struct Trainer {
     status: Arc<LearnerStatus>,
     /// Last time a policy-lag warning was logged.
     lag_warned: Option<Instant>,
+    /// When the last checkpoint was written (or this process started) and the env steps, critic
+    /// updates and stage epoch it held (the wall-time cadence skips a learner with nothing new).
+    last_checkpoint: (Instant, (u64, u64, u64)),
 }
 
 impl Trainer {
@@ -331,6 +363,7 @@ impl Trainer {
             safetensors: policy::encode_actor(&sac)?.into(),
             learner_env_steps: progress.env_steps,
         }));
+        let progress_at_start = progress.clone();
         let trainer = Self {
             config_yaml,
             run_dir,
@@ -355,6 +388,14 @@ impl Trainer {
             policy_tx,
             status: status.clone(),
             lag_warned: None,
+            last_checkpoint: (
+                Instant::now(),
+                (
+                    progress_at_start.env_steps,
+                    progress_at_start.critic_updates,
+                    progress_at_start.stage_epoch,
+                ),
+            ),
             cfg,
         };
         trainer.update_status();
@@ -409,7 +450,7 @@ impl Trainer {
         let result = self.run_loop(&mut inputs, initial_stage);
         if let Err(e) = &result {
             self.status.failed.store(true, Ordering::Relaxed);
-            tracing::error!("training stopped: {e}");
+            tracing::error!("training stopped: {}", crate::error::chain(e));
             return result;
         }
         let reason = self.finish(&mut inputs);
@@ -447,6 +488,10 @@ impl Trainer {
             if self.progress.env_steps >= self.progress.next_checkpoint_at {
                 self.progress.next_checkpoint_at =
                     next_multiple(self.progress.env_steps, self.cfg.sac.save_freq);
+                self.checkpoint()?;
+                continue;
+            }
+            if self.checkpoint_due_in() == Some(Duration::ZERO) {
                 self.checkpoint()?;
                 continue;
             }
@@ -659,6 +704,24 @@ impl Trainer {
             .sample(g, b)?
             .to_tensors(self.sac.kind(), self.sac.device());
         let metrics = self.sac.train_iteration(&batch)?;
+        for (loss, value) in [
+            ("critic loss", metrics.critic_loss),
+            ("Q estimate", metrics.q),
+            ("actor loss", metrics.actor_loss),
+            ("policy entropy", metrics.entropy),
+            ("temperature", metrics.temp),
+            ("temperature loss", metrics.temp_loss),
+        ] {
+            if !value.is_finite() {
+                return Err(TrainError::NonFiniteLoss {
+                    loss,
+                    value,
+                    first_update: self.progress.critic_updates + 1,
+                    last_update: self.progress.critic_updates + metrics.critic_updates,
+                    env_steps: self.progress.env_steps,
+                });
+            }
+        }
         self.limiter.iteration_done();
         self.progress.critic_updates += metrics.critic_updates;
         self.progress.actor_updates += metrics.actor_updates;
@@ -675,6 +738,7 @@ impl Trainer {
     /// never see a torn version, and subscribers share one copy).
     fn publish(&mut self) -> Result<()> {
         let start = Instant::now();
+        self.check_weights("publish", &[("actor", self.sac.actor_vars())])?;
         let weights = v1::PolicyWeights {
             version: self.progress.policy_version,
             safetensors: policy::encode_actor(&self.sac)?.into(),
@@ -685,8 +749,52 @@ impl Trainer {
         Ok(())
     }
 
+    /// Errors with [`TrainError::NonFiniteWeights`] when a variable of `stores` (named
+    /// `<prefix>/<name>`) holds a NaN or an infinity.
+    fn check_weights(
+        &self,
+        action: &'static str,
+        stores: &[(&str, &tch::nn::VarStore)],
+    ) -> Result<()> {
+        for (prefix, vs) in stores {
+            let mut vars: Vec<(String, tch::Tensor)> = vs.variables().into_iter().collect();
+            vars.sort_by(|a, b| a.0.cmp(&b.0));
+            for (name, t) in vars {
+                if !checkpoint::all_finite(&t)? {
+                    return Err(TrainError::NonFiniteWeights {
+                        tensor: format!("{prefix}/{name}"),
+                        action,
+                        critic_updates: self.progress.critic_updates,
+                        env_steps: self.progress.env_steps,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// How long until the wall-time checkpoint (`sac.save_every_s`) is due; `None` while nothing
+    /// changed since the last checkpoint.
+    fn checkpoint_due_in(&self) -> Option<Duration> {
+        let p = &self.progress;
+        if self.last_checkpoint.1 == (p.env_steps, p.critic_updates, p.stage_epoch) {
+            return None;
+        }
+        let every = Duration::from_secs_f64(self.cfg.sac.save_every_s);
+        Some(every.saturating_sub(self.last_checkpoint.0.elapsed()))
+    }
+
     fn checkpoint(&mut self) -> Result<()> {
         let start = Instant::now();
+        self.check_weights(
+            "checkpoint",
+            &[
+                ("actor", self.sac.actor_vars()),
+                ("critic", self.sac.critic_vars()),
+                ("target", self.sac.target_critic_vars()),
+                ("temperature", self.sac.temperature_vars()),
+            ],
+        )?;
         self.progress.wall_ms = self.wall_ms();
         let dir = checkpoint::checkpoint_dir(&self.run_dir);
         let extras = Extras {
@@ -695,12 +803,19 @@ impl Trainer {
             progress: &self.progress,
             limiter: &self.limiter,
         };
-        let manifest = checkpoint::save(&dir, &self.sac, &self.replay, &extras)?;
+        let saved = checkpoint::save(&dir, &self.sac, &mut self.replay, &extras)?;
+        let p = &self.progress;
+        self.last_checkpoint = (
+            Instant::now(),
+            (p.env_steps, p.critic_updates, p.stage_epoch),
+        );
         self.add_time(|t| &mut t.checkpoint, start);
         tracing::info!(
             env_steps = self.progress.env_steps,
-            generation = manifest.generation,
-            replay_mb = manifest.replay_bytes as f64 / 1e6,
+            generation = saved.manifest.generation,
+            replay_mb = saved.manifest.replay_bytes as f64 / 1e6,
+            replay_segments_written = saved.replay_files_written,
+            replay_mb_written = saved.replay_bytes_written as f64 / 1e6,
             "checkpoint written to {} in {:.2} s",
             dir.display(),
             start.elapsed().as_secs_f64()
@@ -710,6 +825,7 @@ impl Trainer {
 
     /// `policy.safetensors` + `policy.json` in the run directory (see docs/POLICY.md).
     fn export_policy(&self) -> Result<()> {
+        self.check_weights("export", &[("actor", self.sac.actor_vars())])?;
         let bytes = policy::encode_actor(&self.sac)?;
         let shape = PolicyShape::from_config(&self.cfg, self.sac.obs_dim(), self.sac.action_dim());
         let desc = PolicyDescription {
@@ -766,7 +882,10 @@ impl Trainer {
 
     fn wait(&mut self, inputs: &mut TrainerInputs) -> Wake {
         let start = Instant::now();
-        let timeout = REPORT_EVERY.saturating_sub(self.report.start.elapsed());
+        let mut timeout = REPORT_EVERY.saturating_sub(self.report.start.elapsed());
+        if let Some(due) = self.checkpoint_due_in() {
+            timeout = timeout.min(due);
+        }
         let TrainerInputs {
             data,
             stages,

@@ -107,10 +107,7 @@ async fn metrics_endpoint_while_training_and_tensorboard_events_equal_to_metrics
             .to_string()
     };
     let (grpc, metrics_url) = (field("grpc"), field("metrics"));
-    let mut learner = Learner {
-        child,
-        grpc: format!("http://{grpc}"),
-    };
+    let mut learner = Learner::from_child(child, format!("http://{grpc}"));
     let mut client = learner.client().await;
 
     push(&mut client, batches(0..PUSHED, 8, 0)).await.unwrap();

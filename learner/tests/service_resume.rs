@@ -1,7 +1,9 @@
-//! SIGKILL after a checkpoint, then `--resume` (or a plain restart on the same run directory) (ARCHITECTURE "Resume that comes back empty"): the
-//! resumed learner holds exactly the checkpointed weights, optimiser states, temperature,
-//! counters, RNG states and both buffers, and, fed the same transitions, ends bit for bit where an
-//! uninterrupted run ends.
+//! SIGKILL after a checkpoint, then `--resume` (or a plain restart on the same run directory)
+//! (ARCHITECTURE "Resume that comes back empty"): the resumed learner holds exactly the
+//! checkpointed weights, optimiser states, temperature, counters, RNG states and both buffers,
+//! and, fed the same transitions, ends bit for bit where an uninterrupted run ends. A learner
+//! killed before its first env-step checkpoint resumes from its wall-time one
+//! (`sac.save_every_s`).
 mod service_support;
 
 use std::path::Path;
@@ -41,19 +43,28 @@ fn snapshot(run_dir: &Path) -> (Snapshot, Manifest) {
     };
     // Everything but the file names, the generation and the wall-clock time.
     let mut json = serde_json::to_value(&manifest).unwrap();
-    for key in [
-        "generation",
-        "networks_file",
-        "optimizers_file",
-        "replay_file",
-    ] {
+    for key in ["generation", "networks_file", "optimizers_file"] {
         json.as_object_mut().unwrap().remove(key);
     }
     json["progress"].as_object_mut().unwrap().remove("wall_ms");
+    for buffer in ["online", "offline"] {
+        if let Some(segments) = json[buffer]["segments"].as_array_mut() {
+            for segment in segments {
+                segment.as_object_mut().unwrap().remove("file");
+            }
+        }
+    }
+    // The replay: every segment file's bytes, in order.
+    let mut replay = Vec::new();
+    for meta in std::iter::once(&manifest.online).chain(manifest.offline.as_ref()) {
+        for segment in &meta.segments {
+            replay.extend(std::fs::read(dir.join(&segment.file)).unwrap());
+        }
+    }
     let snap = Snapshot {
         networks: read(&manifest.networks_file),
         optimizers: read(&manifest.optimizers_file),
-        replay: std::fs::read(dir.join(&manifest.replay_file)).unwrap(),
+        replay,
         manifest: json,
     };
     (snap, manifest)
@@ -88,8 +99,18 @@ struct Run {
 
 impl Run {
     fn new(dir: &Path) -> Run {
+        // No wall-time checkpoint in these runs: only the env-step ones, at exact counts.
+        Self::with_sac(dir, "  save_every_s: 3600\n", 40)
+    }
+
+    /// The test config with `sac_extra` added under `sac` and `save_freq` (40 there) set.
+    fn with_sac(dir: &Path, sac_extra: &str, save_freq: u64) -> Run {
         let demos = write_demos(dir);
-        let config = write_config(dir, W, 100_000, "");
+        let config = write_config(dir, W, 100_000, sac_extra);
+        let text = std::fs::read_to_string(&config).unwrap();
+        assert!(text.contains("  save_freq: 40\n"));
+        let text = text.replace("  save_freq: 40\n", &format!("  save_freq: {save_freq}\n"));
+        std::fs::write(&config, text).unwrap();
         let run_dir = dir.join("run");
         let curriculum = Curriculum::start(&config, &demos, &run_dir);
         Run {
@@ -233,4 +254,75 @@ async fn a_learner_that_finds_its_checkpoint_in_its_run_dir_continues_it() {
     let (resumed, _) = snapshot(&run.run_dir);
     assert_eq!(resumed.networks, at_40.networks, "weights");
     assert!(resumed.replay == at_40.replay, "buffer contents");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_learner_killed_before_its_first_step_checkpoint_resumes_from_its_wall_time_one() {
+    let dir = tempfile::tempdir().unwrap();
+    // An env-step checkpoint the run never reaches.
+    let run = Run::with_sac(dir.path(), "  save_every_s: 0.2\n", 1_000_000);
+    let mut learner = run.start(false);
+    feed(&learner, 0..30).await;
+    // Nothing arrives any more: the next wall-time checkpoint holds all 30 env steps.
+    let ckpt = checkpoint::checkpoint_dir(&run.run_dir);
+    let start = std::time::Instant::now();
+    let manifest = loop {
+        if let Some(m) = checkpoint::read_manifest(&ckpt).unwrap() {
+            if m.progress.env_steps == 30 {
+                break m;
+            }
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "no wall-time checkpoint at 30 env steps within 30 s"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(manifest.online.len, 30);
+    // With nothing new, no further checkpoint is taken.
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let again = checkpoint::read_manifest(&ckpt).unwrap().unwrap();
+    assert_eq!(again.generation, manifest.generation);
+    learner.sigkill();
+
+    let mut learner = run.start(false);
+    let mut client = learner.client().await;
+    let h = health(&mut client).await;
+    assert_eq!(
+        (h.env_steps, h.updates, h.policy_version),
+        (
+            30,
+            manifest.progress.critic_updates,
+            manifest.progress.policy_version
+        )
+    );
+    // More rows reach the resumed learner's online buffer: its next wall-time checkpoint writes
+    // only the segment they changed (one: 16,384-row segments), keeping the others' files.
+    feed_from(&learner, 30..36, 36).await;
+    let start = std::time::Instant::now();
+    let next = loop {
+        let m = checkpoint::read_manifest(&ckpt).unwrap().unwrap();
+        if m.progress.env_steps == 36 {
+            break m;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "no checkpoint at 36 env steps"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(next.online.segments.len(), 1);
+    assert_ne!(next.online.segments[0], manifest.online.segments[0]);
+    // The offline buffer (the demos) did not change: its file is the first checkpoint's.
+    assert_eq!(next.offline, manifest.offline);
+    assert!(learner.sigterm().success());
+}
+
+async fn feed_from(learner: &Learner, range: std::ops::Range<u64>, end: u64) {
+    let mut client = learner.client().await;
+    let summary = push(&mut client, batches(range.clone(), 6, 0))
+        .await
+        .unwrap();
+    assert_eq!(summary.accepted, range.end - range.start);
+    wait_health(&mut client, Duration::from_secs(60), |h| h.env_steps == end).await;
 }

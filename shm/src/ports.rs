@@ -63,10 +63,7 @@ pub enum ShmError {
         problem: String,
     },
     #[error("shared memory: a frame on the iceoryx2 service '{service}': {error}")]
-    Frame {
-        service: String,
-        error: FrameError,
-    },
+    Frame { service: String, error: FrameError },
 }
 
 /// The iceoryx2 config of every rfcl process: iceoryx2's defaults (no config file is read, so

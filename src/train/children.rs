@@ -262,7 +262,10 @@ mod tests {
         )
         .unwrap();
         let tail = log_tail(&path, 2);
-        assert!(tail.ends_with("2026-12-02T23:00:00Z ERROR learner: boom"), "{tail:?}");
+        assert!(
+            tail.ends_with("2026-12-02T23:00:00Z ERROR learner: boom"),
+            "{tail:?}"
+        );
     }
 
     /// The learner (like every child) starts with `OMP_WAIT_POLICY=PASSIVE` unless the user set

@@ -667,7 +667,11 @@ impl Session {
         let mut cause = first_cause.clone();
         let mut tail = match service {
             Service::Curriculum => self.server.log_tail(),
-            Service::Learner => self.learner.as_ref().map(Child::log_tail).unwrap_or_default(),
+            Service::Learner => self
+                .learner
+                .as_ref()
+                .map(Child::log_tail)
+                .unwrap_or_default(),
         };
         let before = self.rollback_counters();
         let (child, line) = loop {

@@ -4,7 +4,7 @@
 //! curriculum server's state and the wall clock.
 use std::collections::BTreeMap;
 
-use rfcl_curriculum::dashboard::{DashboardView, EvalPoint};
+use rfcl_curriculum::dashboard::{DashboardView, EvalPoint, RefusedReports};
 use serde::{Deserialize, Serialize};
 
 /// Evals whose running mean decides an early stop (`service.stop_at_eval_success`; the curriculum
@@ -275,6 +275,10 @@ pub struct Summary {
     pub curriculum_env_steps: u64,
     pub expired_leases: u64,
     pub refused_reports: u64,
+    /// The same by reason (duplicate, expired, unknown lease, stage epoch mismatch, malformed,
+    /// not the lease holder, longer than the lease's time limit).
+    #[serde(default)]
+    pub refused_reports_by_reason: RefusedReports,
     pub actor_respawns: u64,
     /// Restarts of the learner and the curriculum server, with what each rolled back.
     #[serde(default)]
@@ -332,7 +336,6 @@ pub fn summarize(
             }
         })
         .collect();
-    let r = view.refused_reports;
     Summary {
         run_name: view.run_name.clone(),
         env_id: view.env_id.clone(),
@@ -353,7 +356,8 @@ pub fn summarize(
         curriculum_episodes: view.episodes,
         curriculum_env_steps: view.env_steps,
         expired_leases: view.expired_leases,
-        refused_reports: r.duplicate + r.expired + r.unknown + r.epoch_mismatch + r.malformed,
+        refused_reports: view.refused_reports.total(),
+        refused_reports_by_reason: view.refused_reports,
         actor_respawns: progress.actor_respawns,
         service_restarts: progress.restarts.clone(),
         sim_worker_restarts: view.sim_worker_restarts,
@@ -392,9 +396,9 @@ impl RespawnLimiter {
 
     /// Deaths of `id` within the window before `now`.
     pub fn recent(&self, id: u32, now: f64) -> usize {
-        self.deaths
-            .get(&id)
-            .map_or(0, |d| d.iter().filter(|&&t| now - t < self.window_s).count())
+        self.deaths.get(&id).map_or(0, |d| {
+            d.iter().filter(|&&t| now - t < self.window_s).count()
+        })
     }
 
     /// Records a death of actor `id` at `now`; true when it may be respawned.
@@ -621,7 +625,10 @@ mod tests {
         assert_eq!(r.recent(0, 0.0), 0);
         r.allow(0, 0.0);
         r.allow(0, 100.0);
-        assert_eq!((r.recent(0, 200.0), r.recent(0, 650.0), r.recent(1, 200.0)), (2, 1, 0));
+        assert_eq!(
+            (r.recent(0, 200.0), r.recent(0, 650.0), r.recent(1, 200.0)),
+            (2, 1, 0)
+        );
     }
 
     #[test]

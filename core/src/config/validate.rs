@@ -300,7 +300,11 @@ impl RunConfig {
             service.snapshot_every_reports,
             1,
         )?;
-        within("service.snapshot_every_s", service.snapshot_every_s, POSITIVE)?;
+        within(
+            "service.snapshot_every_s",
+            service.snapshot_every_s,
+            POSITIVE,
+        )?;
         within(
             "service.forget_actors_after_s",
             service.forget_actors_after_s,

@@ -233,6 +233,9 @@ impl Drop for Curriculum {
 pub struct Learner {
     pub child: Child,
     pub grpc: String,
+    /// Its stderr so far (logs and its final error line).
+    stderr: std::sync::Arc<std::sync::Mutex<String>>,
+    drain: Option<std::thread::JoinHandle<()>>,
 }
 
 /// Runs the learner binary with `args` to completion (for start-up failures): exit status, stdout
@@ -289,15 +292,23 @@ impl Learner {
             .trim()
             .trim_start_matches("learner ready grpc=")
             .to_string();
-        // Keep stderr drained (its logs) so the child never blocks on a full pipe.
-        // RFCL_TEST_LOGS=1 shows them.
+        // Keep stderr drained (its logs, kept for `stderr_text`) so the child never blocks on a
+        // full pipe. RFCL_TEST_LOGS=1 shows them.
         let stderr = child.stderr.take().unwrap();
-        std::thread::spawn(move || {
+        let text = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+        let keep = text.clone();
+        let drain = std::thread::spawn(move || {
             let show = std::env::var_os("RFCL_TEST_LOGS").is_some();
             for line in BufReader::new(stderr).lines() {
                 match line {
-                    Ok(line) if show => eprintln!("learner: {line}"),
-                    Ok(_) => {}
+                    Ok(line) => {
+                        if show {
+                            eprintln!("learner: {line}");
+                        }
+                        let mut all = keep.lock().unwrap();
+                        all.push_str(&line);
+                        all.push('\n');
+                    }
                     Err(_) => break,
                 }
             }
@@ -305,7 +316,30 @@ impl Learner {
         Learner {
             child,
             grpc: format!("http://{grpc}"),
+            stderr: text,
+            drain: Some(drain),
         }
+    }
+
+    /// A learner child started by the caller, serving gRPC at `grpc` (`http://...`); its stderr
+    /// is not kept.
+    pub fn from_child(child: Child, grpc: String) -> Learner {
+        Learner {
+            child,
+            grpc,
+            stderr: Default::default(),
+            drain: None,
+        }
+    }
+
+    /// The child's stderr so far; all of it once the child has exited.
+    pub fn stderr_text(&mut self) -> String {
+        if self.child.try_wait().unwrap().is_some() {
+            if let Some(drain) = self.drain.take() {
+                let _ = drain.join();
+            }
+        }
+        self.stderr.lock().unwrap().clone()
     }
 
     /// The usual arguments: config, curriculum, demos, run dir.
