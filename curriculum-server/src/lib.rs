@@ -1,4 +1,4 @@
-//! RFCL curricula (`shared/spec/RFCL.md` sections 2-4) as pure logic, with no I/O.
+//! RFCL curricula (docs/ALGORITHM.md sections 2-4) as pure logic, with no I/O.
 //!
 //! * [`rank`]: rank transforms and probability vectors (spec 3.4).
 //! * [`reverse`]: stage 1, the per-demo reverse curriculum (spec 2).
