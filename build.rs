@@ -1,6 +1,6 @@
 //! The `rfcl` binary links libtorch (`rfcl eval` runs the policy network, through rfcl-actor and
 //! rfcl-learner): give it and this package's tests an rpath to libtorch's lib dir so they run
-//! without `LD_LIBRARY_PATH` (design/STACK.md, "Run-time library path"). torch-sys publishes the
+//! without `LD_LIBRARY_PATH` (the venv's torch does not put its lib dir on the loader's path). torch-sys publishes the
 //! dir as `DEP_TCH_LIBTORCH_LIB` (its `links = "tch"` metadata) to packages that depend on it
 //! directly.
 fn main() {

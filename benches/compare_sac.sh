@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The Rust learner's SAC update against a jitted JAX/Flax implementation of the same update
-# (issue 5: the goal is >= 1.5x), back to back in one run, on the same cores.
+# (the goal is >= 1.5x), back to back in one run, on the same cores.
 #
 #   benches/compare_sac.sh [--threads N] [--rounds R] [--windows W] [--seconds S]
 #                          [--schedules 80/20,16/1] [--max-load 0.5] [--max-wait-s 600]

@@ -1,5 +1,5 @@
 //! `rfcl bench e2e`: end-to-end env steps per second of whole `rfcl train` runs on PointMaze with
-//! 1, 2, 4, ... actors (issue 6).
+//! 1, 2, 4, ... actors.
 //!
 //! Each run is this binary's own `rfcl train` on the given config with 5 generated demos, in
 //! `async` UTD mode (learner and actors flat out: the sync mode would report the learner's update

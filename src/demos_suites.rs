@@ -1,5 +1,5 @@
 //! `rfcl demos generate --env metaworld/<task>` and `rfcl demos convert --suite adroit`: the demo
-//! sources of the MetaWorld and Adroit suites (issue 8, docs/SUITES.md "Demo files"), written in
+//! sources of the MetaWorld and Adroit suites (docs/SUITES.md "Demo files"), written in
 //! Python (`python/rfcl_sim/demos.py`) and run here with the venv's Python
 //! ([`demos_sim::python_program`]):
 //!

@@ -5,7 +5,7 @@
 //! child outlives the run;
 //! `rfcl eval` runs the exported policy.
 //!
-//! The bar is the config's own 0.9 (issue 6's done-when): on the 2-core development machine the run
+//! The bar is the config's own 0.9: on the 2-core development machine the run
 //! gets there after 75,000-95,000 env steps, in 4-5 minutes (benches/RESULTS.md); a policy that
 //! acts uniformly never does.
 mod train_support;

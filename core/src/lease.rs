@@ -1,4 +1,4 @@
-//! Reset leases and episode reports: the curriculum contract of ARCHITECTURE.md, as domain types.
+//! Reset leases and episode reports: the curriculum contract (docs/DESIGN.md, "The path of a lease"), as domain types.
 //!
 //! The wire forms live in rfcl-proto; `rfcl_proto::convert` is the one place that converts between
 //! the two.

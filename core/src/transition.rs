@@ -1,5 +1,5 @@
 //! The transition record: ONE fixed little-endian binary layout, shared by the shared-memory
-//! (iceoryx2) and the gRPC (`TransitionBatch.records`) transports (ARCHITECTURE.md, "Contracts").
+//! (iceoryx2) and the gRPC (`TransitionBatch.records`) transports (docs/DESIGN.md, "The path of a transition").
 //!
 //! A record carries one environment step `(obs, action, reward, next_obs, mask)` together with the
 //! stage epoch it was collected in (the learner drops late transitions of an old epoch, spec 4),
@@ -31,7 +31,7 @@
 
 use thiserror::Error;
 
-/// One environment step as the learner stores it (ARCHITECTURE.md, "Transition record").
+/// One environment step as the learner stores it (docs/DESIGN.md, "The path of a transition").
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Transition {
     pub obs: Vec<f32>,

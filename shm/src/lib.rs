@@ -1,6 +1,5 @@
 //! rfcl's same-host transport: transition batches (actors → learner) and policy versions
-//! (learner → actors) over iceoryx2 shared memory (ARCHITECTURE.md, "Processes"; design/STACK.md,
-//! the iceoryx2 traps).
+//! (learner → actors) over iceoryx2 shared memory (docs/DESIGN.md, "The path of a transition").
 //!
 //! * [`frame`]: the bytes of a sample (a small header, then the records in rfcl-core's
 //!   `RecordLayout`, or the policy's safetensors), pure and tested;

@@ -1,4 +1,4 @@
-//! The iceoryx2 ports rfcl uses, each configured for what it carries (design/STACK.md traps):
+//! The iceoryx2 ports rfcl uses, each configured for what it carries:
 //!
 //! * **Transitions** (actors → learner): `enable_safe_overflow(false)` and a publisher that
 //!   retries until the learner's queue has room (`RetryUntilDelivered`). iceoryx2's default

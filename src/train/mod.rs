@@ -1,4 +1,4 @@
-//! `rfcl train`: one RFCL run on this machine (ARCHITECTURE.md, "Processes").
+//! `rfcl train`: one RFCL run on this machine (docs/DESIGN.md, "Processes").
 //!
 //! It resolves the config into `RUN_DIR/config.yml`, starts the curriculum server, the learner,
 //! `service.num_actors` actors (`env.num_envs` split over them) and `service.num_eval_actors` eval

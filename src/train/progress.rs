@@ -1,5 +1,5 @@
 //! The pure bookkeeping of `rfcl train`: which evaluations are complete, when the run may stop
-//! early, and the run summary (ARCHITECTURE.md, "Run directory": steps and wall time to each
+//! early, and the run summary (docs/DESIGN.md, "Run directory": steps and wall time to each
 //! success threshold, stage-1 length, final success rates). No I/O: the orchestrator feeds it the
 //! curriculum server's state and the wall clock.
 use std::collections::BTreeMap;
