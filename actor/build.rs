@@ -1,12 +1,13 @@
 //! The `actor` binary and this package's tests link libtorch (the policy network, through
-//! rfcl-learner): give them an rpath to libtorch's lib dir so they run without `LD_LIBRARY_PATH`
-//! (design/STACK.md, "Run-time library path"). torch-sys publishes the dir as `DEP_TCH_LIBTORCH_LIB`
-//! (its `links = "tch"` metadata) to packages that depend on it directly.
+//! rfcl-policy): give them an rpath to libtorch's lib dir so they run without `LD_LIBRARY_PATH`
+//! (the libtorch of the venv's PyTorch is not on the loader's default path). torch-sys publishes
+//! the dir as `DEP_TCH_LIBTORCH_LIB` (its `links = "tch"` metadata) to packages that depend on it
+//! directly.
 //!
 //! `rfcl-sim-worker` embeds the Python of `PYO3_PYTHON` (the venv's): it gets an rpath to that
-//! Python's own libpython (without it the loader takes Debian's libpython3.11, a different build:
-//! design/STACK.md, "pyo3 picks the wrong libpython"), and the venv's site-packages directory is
-//! recorded as `RFCL_PYTHON_SITE_PACKAGES` for the worker to put on `sys.path`.
+//! Python's own libpython (without it the loader takes Debian's libpython3.11, a different
+//! build), and the venv's site-packages directory is recorded as `RFCL_PYTHON_SITE_PACKAGES` for
+//! the worker to put on `sys.path`.
 use std::process::Command;
 
 fn main() {

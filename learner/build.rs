@@ -1,6 +1,6 @@
 //! Makes every target of this package (lib tests, integration tests, benches, the `learner` binary)
-//! find libtorch at run time without `LD_LIBRARY_PATH` (design/STACK.md, "Run-time library path"),
-//! and keeps CUDA linked where the libtorch build has it ("CUDA is dropped by the linker").
+//! find libtorch at run time without `LD_LIBRARY_PATH`,
+//! and keeps CUDA linked where the libtorch build has it (the linker drops it otherwise).
 //!
 //! * The libtorch lib dir comes from torch-sys's `links = "tch"` metadata (`DEP_TCH_LIBTORCH_LIB`),
 //!   falling back to asking `$PYTHON_SYS_EXECUTABLE` where its torch lives.

@@ -5,10 +5,10 @@
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use rfcl_actor::net::{PolicyDescription, PolicyNet};
 use rfcl_actor::policy::PolicyHandle;
 use rfcl_actor::rollout::{derive_seed, Rollout, RolloutSettings, StepOutput};
 use rfcl_core::lease::{LeaseKind, ResetArgs, ResetLease};
+use rfcl_policy::{PolicyDescription, PolicyNet};
 use serde::Serialize;
 
 /// Held-out seeds start this far above `eval_env.seed_offset`: the evaluations during training
@@ -177,7 +177,7 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rfcl_learner::policy::{encode_actor, tensor_names, PolicyShape, FORMAT};
+    use rfcl_policy::{tensor_names, PolicyShape, FORMAT};
 
     /// A PointMaze run directory with `train.data_action_scale` set and an exported (untrained)
     /// policy whose `policy.json` records `scale` (none: no `policy.json`).
@@ -197,10 +197,14 @@ mod tests {
             rfcl_actor::pointmaze::OBS_DIM,
             rfcl_actor::pointmaze::ACTION_DIM,
         );
-        let sac = rfcl_learner::Sac::new(obs, act, &cfg.sac, &cfg.network, 1).unwrap();
-        std::fs::write(dir.join("policy.safetensors"), encode_actor(&sac).unwrap()).unwrap();
-        let Some(scale) = scale else { return };
         let shape = PolicyShape::from_config(&cfg, obs, act);
+        let net = PolicyNet::init(shape.clone(), 1).unwrap();
+        std::fs::write(
+            dir.join("policy.safetensors"),
+            net.to_safetensors().unwrap(),
+        )
+        .unwrap();
+        let Some(scale) = scale else { return };
         let desc = PolicyDescription {
             format: FORMAT.into(),
             env_id: cfg.env.env_id.clone(),

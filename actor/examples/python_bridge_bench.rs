@@ -20,7 +20,7 @@ use rfcl_actor::python::{worker_program, PythonEnv, WorkerSpec};
 use rfcl_actor::rollout::{Rollout, RolloutSettings, StepOutput};
 use rfcl_core::lease::{LeaseKind, ResetArgs, ResetLease};
 use rfcl_core::transition::RecordLayout;
-use rfcl_learner::policy::PolicyNet;
+use rfcl_policy::{PolicyNet, PolicyShape};
 
 fn main() -> anyhow::Result<()> {
     let mut args = std::env::args().skip(1);
@@ -96,9 +96,10 @@ fn actor_rollout(env: PythonEnv, steps: u32) -> anyhow::Result<f64> {
     );
     let cfg = rfcl_core::config::resolve_file(std::path::Path::new(config), &[])?;
     let (obs_dim, action_dim) = (env.obs_dim(), env.action_dim());
-    let sac = rfcl_learner::sac::Sac::new(obs_dim, action_dim, &cfg.sac, &cfg.network, cfg.seed)?;
-    let weights = rfcl_learner::policy::encode_actor(&sac)?;
-    let net = PolicyNet::from_safetensors(&weights, &cfg, obs_dim, action_dim)?;
+    let net = PolicyNet::init(
+        PolicyShape::from_config(&cfg, obs_dim, action_dim),
+        cfg.seed,
+    )?;
     let mut policy = PolicyHandle {
         version: 1,
         env_steps: 1,

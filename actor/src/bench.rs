@@ -1,8 +1,9 @@
 //! `rfcl bench actor`: what an actor's machinery costs on top of stepping the same envs with the
-//! same policy (issue 6: goal under 5 %).
+//! same policy (the goal: under 5 %).
 //!
 //! Both loops run K native PointMaze envs with one policy network of the run's config (fresh
-//! weights: the cost does not depend on their values), one libtorch thread, in this process:
+//! weights, initialised from the run seed: the cost does not depend on their values), one
+//! libtorch thread, in this process:
 //!
 //! * **bare**: for each env, `policy.act(obs)` then `env.step(action)`, resetting every H steps;
 //! * **actor**: what an actor does per step: [`Rollout::step`] (leases, exploration rule, sparse
@@ -19,7 +20,7 @@ use rand_chacha::ChaCha8Rng;
 use rfcl_core::config::RunConfig;
 use rfcl_core::lease::{LeaseKind, ResetArgs, ResetLease};
 use rfcl_core::transition::RecordLayout;
-use rfcl_learner::policy::PolicyNet;
+use rfcl_policy::{PolicyNet, PolicyShape};
 use serde::Serialize;
 
 use crate::env::Env;
@@ -52,8 +53,8 @@ pub fn actor_overhead(
 ) -> anyhow::Result<ActorOverhead> {
     crate::net::configure_inference_threads();
     let (obs_dim, action_dim) = (crate::pointmaze::OBS_DIM, crate::pointmaze::ACTION_DIM);
-    let sac = rfcl_learner::sac::Sac::new(obs_dim, action_dim, &cfg.sac, &cfg.network, cfg.seed)?;
-    let weights = rfcl_learner::policy::encode_actor(&sac)?;
+    let shape = PolicyShape::from_config(cfg, obs_dim, action_dim);
+    let weights = PolicyNet::init(shape, cfg.seed)?.to_safetensors()?;
     let horizon = cfg.env.max_episode_steps;
     let (mut bare_best, mut actor_best) = (0f64, 0f64);
     for _ in 0..windows {

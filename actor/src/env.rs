@@ -11,7 +11,7 @@
 //!   the task distribution, spec 2.4 step 3 and 3.1) and to a demo state (spec 2.4 steps 3-6).
 //!
 //! The env state is an opaque `f32` vector whose flattening each env documents in its
-//! [`StateLayout`] (ARCHITECTURE.md, "Contracts: env state"): the same type that describes the
+//! [`StateLayout`]: the same type that describes the
 //! `env_states` of a demo file, so that an env and a demo set can be checked against each other.
 //! Geometry and goals may live outside that vector, which is why restoring a state always starts
 //! with a reset to the demo's seed and options (spec 2.4, 12.13).

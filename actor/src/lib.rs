@@ -7,7 +7,7 @@
 //!   `rfcl-sim-worker` process.
 //! * [`suite`]: which envs an actor can make for a run's env config.
 //! * [`policy`]: the [`Policy`] an actor acts with, and uniform exploration (spec 5.4).
-//! * [`net`]: the learner's policy network ([`net::PolicyNet`]) as a [`Policy`].
+//! * [`net`]: the learner's policy network ([`net::PolicyNet`], from rfcl-policy) as a [`Policy`].
 //! * [`rollout`]: K envs stepped from reset leases into transitions and episode reports (spec 2.4,
 //!   2.5, 5.4-5.6), pure logic shared by the `actor` binary and `rfcl eval`.
 //! * [`eval`]: when eval actors evaluate and how many episodes (spec 5.7).

@@ -1,9 +1,9 @@
-//! The learner's policy network as an actor's [`Policy`]: rfcl-learner's CPU [`PolicyNet`]
-//! (the tanh-Gaussian actor of spec 5.1, weights in the safetensors format of
-//! `rfcl_learner::policy`).
+//! The learner's policy network as an actor's [`Policy`]: rfcl-policy's CPU [`PolicyNet`]
+//! (the tanh-Gaussian actor of spec 5.1, weights in the safetensors format the learner
+//! publishes, defined by rfcl-policy).
 use rand_chacha::ChaCha8Rng;
 use rfcl_core::config::RunConfig;
-pub use rfcl_learner::policy::{PolicyDescription, PolicyError, PolicyNet};
+pub use rfcl_policy::{PolicyDescription, PolicyError, PolicyNet, PolicyShape};
 
 use crate::policy::{LoadError, Policy};
 

@@ -73,8 +73,7 @@ pub fn env_action(action: &[f32], scale: &[f32]) -> Vec<f32> {
         .collect()
 }
 
-/// Seed of env `env_index` of actor `actor_id` in a run seeded `run_seed` (ARCHITECTURE.md,
-/// "Irreproducible runs"): the three go through SplitMix64 one after the other, so neighbouring ids
+/// Seed of env `env_index` of actor `actor_id` in a run seeded `run_seed`, so a run can be reproduced: the three go through SplitMix64 one after the other, so neighbouring ids
 /// get unrelated streams. The env's own RNG and the env's action RNG both derive from it.
 pub fn derive_seed(run_seed: u64, actor_id: u32, env_index: u32) -> u64 {
     let mut x = splitmix64(run_seed ^ 0x5246_434c_0000_0000); // "RFCL"

@@ -290,8 +290,11 @@ impl LearnerHandle {
             let _ = stopped.recv();
             rt.shutdown_background();
         });
-        let sac = rfcl_learner::Sac::new(7, 2, &cfg.sac, &cfg.network, 3).unwrap();
-        let weights = rfcl_learner::policy::encode_actor(&sac).unwrap();
+        let shape = rfcl_policy::PolicyShape::from_config(cfg, 7, 2);
+        let weights = rfcl_policy::PolicyNet::init(shape, 3)
+            .unwrap()
+            .to_safetensors()
+            .unwrap();
         LearnerHandle {
             addr: format!("http://{addr}"),
             seen,

@@ -2,8 +2,9 @@
 //! and `cargo bench -p rfcl-learner`, with the matmul FLOP count of each update.
 //!
 //! One "update" is one critic update plus its share 1/F of an actor and a temperature update, so
-//! in the G16/F1 schedule it is one critic and one actor update (design/STACK.md's 4.07 GFLOP
-//! figure) and in G80/F20 a critic update plus 1/20 of an actor update.
+//! in the G16/F1 schedule it is one critic and one actor update (about 4.07 GFLOP with the
+//! default networks, benches/RESULTS.md) and in G80/F20 a critic update plus 1/20 of an actor
+//! update.
 use crate::batch::HostBatch;
 use crate::error::Result;
 use crate::sac::Sac;
@@ -32,7 +33,7 @@ pub struct BenchConfig {
     pub threads: i32,
     pub parallelism: Parallelism,
     /// Critic member shards with `members` parallelism (`None`: the learner's default,
-    /// [`crate::sac::SHARDS_PER_THREAD`] per thread).
+    /// [`crate::members::SHARDS_PER_THREAD`] per thread).
     pub shards: Option<usize>,
     /// Untimed iterations before measuring, per schedule.
     pub warmup_iterations: u32,
@@ -305,7 +306,7 @@ mod tests {
         let cfg = BenchConfig::default();
         let net = NetworkConfig::default();
         let flops = Flops::new(&cfg, &net);
-        // design/STACK.md: "about 4.07 GFLOP" for one critic + one actor update.
+        // About 4.07 GFLOP for one critic + one actor update (benches/RESULTS.md: 4.065).
         assert_eq!(flops.critic_update + flops.actor_update, 4_065_067_008.0);
     }
 

@@ -1,5 +1,5 @@
-//! Learner checkpoints (spec 4.1 "each model's state = params + optimizer state + step";
-//! ARCHITECTURE "Resume that comes back empty"): everything a resumed learner needs to continue
+//! Learner checkpoints (spec 4.1 "each model's state = params + optimizer state + step"):
+//! everything a resumed learner needs to continue
 //! exactly where it stopped.
 //!
 //! Layout of `RUN_DIR/checkpoint/`:

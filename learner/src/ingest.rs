@@ -1,8 +1,8 @@
 //! Transition ingest: validation of transition records at the edge, whichever transport brought
 //! them (a gRPC `TransitionBatch`, a shared-memory frame: [`validate_records`] is the one check),
 //! the items that travel through the bounded queue to the training thread, and the counts per
-//! transport ([`IngestCounters`]) (ARCHITECTURE "Transition record", "every queue is bounded",
-//! "every drop is counted").
+//! transport ([`IngestCounters`]): every queue is bounded and every drop is counted
+//! (docs/DESIGN.md, "The path of a transition").
 //!
 //! A batch is validated whole before any of it is queued; a malformed one is refused (gRPC: with
 //! `INVALID_ARGUMENT` naming the field; shared memory: counted and logged). What the training thread does with each record (stored,

@@ -1,20 +1,23 @@
 //! RFCL learner library: batched-ensemble SAC on libtorch and its replay (spec 5, 6.2-6.4, 4.2).
 //! No network I/O here; the `learner` binary wires it to the transports.
 //!
-//! * [`nets`]: actor, critic ensemble (one batched computation), initialisers, tanh-Gaussian policy
-//!   (spec 5.1).
+//! * [`nets`]: the critic ensemble (one batched computation) and its initialisers, with the actor
+//!   (the tanh-Gaussian policy) of rfcl-policy (spec 5.1).
 //! * [`sac`]: the losses and the training iteration (spec 5.2, 5.3), metrics of spec 5.8.
+//! * [`members`]: the critic ensemble's members run on several threads (the member-parallel
+//!   execution of [`Sac::set_member_threads`]).
 //! * [`adam`]: in-place Adam whose state can be checkpointed (spec 5.3, 4.1).
 //! * [`replay`]: online/offline rings, 50/50 interleaved sampling, demos as offline data with
 //!   `data_action_scale`, the stage transition (spec 5.5, 6.2, 6.4, 4.2, 12.7).
 //! * [`batch`]: the tensors one iteration consumes.
 //! * [`bench`]: updates/s and FLOPs of the SAC update (`rfcl bench learner`).
 //! * [`metrics`], [`tensorboard`], [`prom`]: `metrics.csv`, TensorBoard event files and the
-//!   Prometheus `/metrics` state (spec 5.8, ARCHITECTURE "Run directory").
+//!   Prometheus `/metrics` state (spec 5.8; docs/LEARNER.md).
 //!
 //! * [`runtime`]: process-wide CPU settings (threads, allocator) for the SAC maths.
 //! * [`ingest`], [`service`], [`shm`]: transitions in over gRPC and iceoryx2 shared memory into
 //!   one validated, bounded ingest path, policy versions out over both, counted per transport.
+//!   Policy versions are in the weights format of rfcl-policy.
 pub mod adam;
 pub mod batch;
 pub mod bench;
@@ -22,9 +25,9 @@ pub mod checkpoint;
 pub mod error;
 pub mod ingest;
 pub mod limiter;
+pub mod members;
 pub mod metrics;
 pub mod nets;
-pub mod policy;
 pub mod prom;
 pub mod replay;
 pub mod runtime;

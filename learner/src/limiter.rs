@@ -1,5 +1,5 @@
 //! The update-to-data (UTD) limiter: when the learner may run a training iteration, given the env
-//! steps it has received (spec 5.2, 5.4, 4.4; ARCHITECTURE "UTD modes"). Pure bookkeeping: no
+//! steps it has received (spec 5.2, 5.4, 4.4; docs/LEARNER.md). Pure bookkeeping: no
 //! clock, no I/O.
 //!
 //! Let K = `env.num_envs · sac.steps_per_env` (env steps per iteration of the reference loop) and

@@ -1,5 +1,5 @@
 //! `learner`: ensemble SAC on libtorch with replay, gRPC transition ingest, policy publication,
-//! stage transitions and checkpoints (ARCHITECTURE "learner", issue 5).
+//! stage transitions and checkpoints (docs/LEARNER.md).
 //!
 //! ```text
 //! learner --config CFG [key=value ...] --curriculum http://ADDR [--demos FILE] [--run-dir DIR]
@@ -185,18 +185,18 @@ async fn run(args: Args) -> Result<()> {
         .await
         .context("subscribing to the curriculum server's stage announcements")?;
     tracing::info!(
-        stage = first_stage.stage,
-        epoch = first_stage.stage_epoch,
+        stage = first_stage.stage.number(),
+        epoch = first_stage.epoch,
         "curriculum server at {}",
         args.curriculum
     );
 
     let (trainer, policy_rx, status) = match &manifest {
         Some(m) => {
-            if first_stage.stage_epoch < m.progress.stage_epoch {
+            if first_stage.epoch < m.progress.stage_epoch {
                 bail!(
                     "the curriculum server is at stage epoch {} but the learner checkpoint at {}: resume the curriculum server from the same run directory",
-                    first_stage.stage_epoch,
+                    first_stage.epoch,
                     m.progress.stage_epoch
                 );
             }
@@ -214,10 +214,10 @@ async fn run(args: Args) -> Result<()> {
             resumed
         }
         None => {
-            if first_stage.stage_epoch > 0 && !cfg.train.stage_2_only {
+            if first_stage.epoch > 0 && !cfg.train.stage_2_only {
                 tracing::warn!(
                     "the curriculum server is already at stage epoch {}: a fresh learner starts there with the demos as its offline buffer",
-                    first_stage.stage_epoch
+                    first_stage.epoch
                 );
             }
             Trainer::fresh(cfg.clone(), &demos, run_dir.clone(), &first_stage)

@@ -5,7 +5,7 @@
 //! The same values go to TensorBoard ([`crate::tensorboard`], tag = column name, step =
 //! `env_steps`): [`Row::fields`] is the one list both are written from.
 //!
-//! Rows are keyed by env steps, never by wall time (ARCHITECTURE "Irreproducible runs"). On resume
+//! Rows are keyed by env steps, never by wall time, so curves of runs compare. On resume
 //! the rows written after the checkpoint are removed, so a curve never has two points for one
 //! step.
 use std::fs::{File, OpenOptions};
@@ -72,7 +72,7 @@ impl UpdateMeans {
     }
 }
 
-/// Seconds spent per activity in one window (ARCHITECTURE "Not knowing where time goes").
+/// Seconds spent per activity in one window (where the time goes).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Timings {
     pub wait: f64,

@@ -1,6 +1,6 @@
 //! Prometheus `/metrics` of the learner (`learner --metrics-port P`): `rfcl_learner_*` gauges and
-//! counters for what an operator watches live (ARCHITECTURE "Not knowing where time goes",
-//! "Memory that keeps growing"): updates/s, achieved UTD, buffer fill and bytes, dropped records
+//! counters for what an operator watches live (where the time goes, whether memory
+//! keeps growing): updates/s, achieved UTD, buffer fill and bytes, dropped records
 //! by reason, policy version and lag, where the time went, RSS.
 //!
 //! The training thread copies its counters into one [`Snapshot`] at the consistent points where

@@ -377,9 +377,8 @@ pub fn offline_from_demos(demos: &[Demo], action_scale: Option<&[f32]>) -> Resul
     Ok(buffer)
 }
 
-/// Checkpoint access (added for the learner service, issue 5; additive only): the ring's raw
-/// storage and position, so a checkpoint can store a buffer and restore it exactly (spec 4.1,
-/// ARCHITECTURE "Resume that comes back empty").
+/// Checkpoint access (additive only): the ring's raw
+/// storage and position, so a checkpoint can store a buffer and restore it exactly (spec 4.1).
 impl ReplayBuffer {
     /// The slot the next push writes; with [`len`](Self::len), the ring's whole position.
     pub fn cursor(&self) -> usize {

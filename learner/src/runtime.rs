@@ -1,4 +1,4 @@
-//! Process-wide CPU settings for the SAC maths (design/STACK.md, "The SAC update on this CPU").
+//! Process-wide CPU settings for the SAC maths.
 //! Call [`configure_cpu`] once, early, in a process that runs SAC updates on the CPU.
 //!
 //! * **Threads**: libtorch's intra-op thread count (`tch::set_num_threads`).

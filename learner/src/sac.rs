@@ -1,15 +1,21 @@
 //! SAC with a Q-ensemble (spec 5.2, 5.3): the losses, one function per formula, and the training
 //! iteration that applies them in the schedule of spec 5.2.
 //!
-//! Read top to bottom: [`Sac::train_iteration`] is the whole algorithm; the `update_*` methods are
-//! its three steps; the free functions below them are the spec's formulas.
+//! Read top to bottom: the agent and its networks ([`Sac::new`]), [`Sac::train_iteration`] (the
+//! whole algorithm), the `update_*` methods (its three steps) with their losses, and below them
+//! the spec's formulas as free functions.
+//!
+//! An update can run the critic ensemble's members on several threads instead of as one batched
+//! computation ([`Sac::set_member_threads`]); that execution, and only that, is
+//! [`crate::members`]: the maths are the same.
 use crate::adam::Adam;
 use crate::batch::Batch;
 use crate::error::{LearnerError, Result};
+use crate::members::MemberThreads;
 use crate::nets::{standard_normal, Actor, CriticEnsemble};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rfcl_core::config::{NetworkConfig, SacConfig};
+use rfcl_core::config::{NetworkConfig, RunConfig, SacConfig};
 use serde::Serialize;
 use tch::{nn, Device, Kind, Tensor};
 
@@ -90,11 +96,9 @@ pub struct Sac {
     /// (target, online) critic parameters, matched by name.
     polyak_pairs: Vec<(Tensor, Tensor)>,
     rng: ChaCha8Rng,
-    /// Threads that run the critic ensemble's members in parallel (1 = one batched computation on
-    /// the calling thread); see [`Sac::set_member_threads`].
-    member_threads: usize,
-    /// Shards the members are split into when `member_threads > 1`.
-    member_shards: usize,
+    /// How the critic ensemble's members run (one batched computation unless
+    /// [`Sac::set_member_threads`] says otherwise).
+    member_threads: MemberThreads,
 }
 
 impl Sac {
@@ -118,7 +122,7 @@ impl Sac {
         seed: u64,
         kind: Kind,
     ) -> Result<Self> {
-        validate(obs_dim, action_dim, cfg, net)?;
+        check(obs_dim, action_dim, cfg, net)?;
         let device = match cfg.device {
             rfcl_core::config::Device::Cpu => Device::Cpu,
             rfcl_core::config::Device::Cuda if tch::Cuda::is_available() => Device::Cuda(0),
@@ -201,41 +205,8 @@ impl Sac {
             log_alpha,
             polyak_pairs,
             rng,
-            member_threads: 1,
-            member_shards: 1,
+            member_threads: MemberThreads::SERIAL,
         })
-    }
-
-    /// Runs the critic ensemble's members on `threads` threads (each with single-threaded libtorch
-    /// ops): every critic and actor update splits the members into contiguous shards,
-    /// [`SHARDS_PER_THREAD`] per thread (at most one per member), which the threads take from a
-    /// shared queue until none is left; then their gradients are joined. The maths are those of
-    /// the single batched computation (same losses, same gradients up to float summation order,
-    /// same RNG draws); only the work is spread. On a CPU this uses cores that libtorch's per-op threading leaves idle for
-    /// networks of RFCL's size (benches/RESULTS.md). CUDA ignores it.
-    pub fn set_member_threads(&mut self, threads: usize) {
-        self.set_member_parallelism(threads, threads.saturating_mul(SHARDS_PER_THREAD));
-    }
-
-    /// [`Sac::set_member_threads`] with an explicit shard count (clamped to 1..=members; at
-    /// least one shard per thread), for benchmarks.
-    pub fn set_member_parallelism(&mut self, threads: usize, shards: usize) {
-        let members = self.critic.members() as usize;
-        self.member_threads = match self.device {
-            Device::Cpu => threads.clamp(1, members),
-            _ => 1,
-        };
-        self.member_shards = shards.clamp(self.member_threads, members);
-    }
-
-    /// See [`Sac::set_member_threads`].
-    pub fn member_threads(&self) -> usize {
-        self.member_threads
-    }
-
-    /// See [`Sac::set_member_parallelism`].
-    pub fn member_shards(&self) -> usize {
-        self.member_shards
     }
 
     /// One training iteration (spec 5.2) on a prepared batch of G·B rows, already interleaved
@@ -295,9 +266,11 @@ impl Sac {
             self.cfg.num_min_qs as usize,
         );
         let noise = self.policy_noise(minibatch.rows());
-        let step = if self.member_threads > 1 {
+        let threads = self.member_threads;
+        let step = if threads.is_parallel() {
+            // The same loss and gradients, the members computed on several threads.
             let target = self.critic_target(minibatch, &members, &noise);
-            let (step, grads) = self.critic_gradients_sharded(minibatch, &target);
+            let (step, grads) = threads.critic_gradients(&self.critic, minibatch, &target);
             self.critic_opt.step(grads);
             step
         } else {
@@ -346,44 +319,16 @@ impl Sac {
         })
     }
 
-    /// The critic loss's value and its gradients (in the critic optimiser's parameter order), with
-    /// the members split over [`Sac::member_threads`] threads. Shard s of E_s members returns
-    /// its mean squared TD error times E_s/E: the shards' losses then add up to the mean over all
-    /// E members, and each member's gradient is the one of the whole loss.
-    fn critic_gradients_sharded(
-        &self,
-        minibatch: &Batch,
-        target: &Tensor,
-    ) -> (CriticStep, Vec<Tensor>) {
-        let members = self.critic.members();
-        let jobs: Vec<CriticShardJob> = shard_ranges(members, self.member_shards)
-            .into_iter()
-            .map(|(start, len)| CriticShardJob {
-                shard: self.critic.shard(start, len, true),
-                weight: len as f64 / members as f64,
-                obs: minibatch.obs.shallow_clone(),
-                action: minibatch.action.shallow_clone(),
-                target: target.shallow_clone(),
-            })
-            .collect();
-        let parts = run_on_threads(jobs, self.member_threads, CriticShardJob::run);
-        let loss = Tensor::stack(&parts.iter().map(|p| &p.loss).collect::<Vec<_>>(), 0).sum(None);
-        let q_sum = Tensor::stack(&parts.iter().map(|p| &p.q_sum).collect::<Vec<_>>(), 0).sum(None);
-        let params = parts[0].grads.len();
-        let grads = (0..params)
-            .map(|i| Tensor::cat(&parts.iter().map(|p| &p.grads[i]).collect::<Vec<_>>(), 0))
-            .collect();
-        let q = q_sum / (members * minibatch.rows()) as f64;
-        (CriticStep { loss, q }, grads)
-    }
-
     /// One actor update (spec 5.3 "Actor"): gradients reach the actor only.
     pub fn update_actor(&mut self, obs: &Tensor) -> ActorStep {
         let noise = self.policy_noise(obs.size()[0]);
-        let (loss, log_prob) = if self.member_threads > 1 {
-            let (value, surrogate, log_prob) = self.actor_loss_sharded(obs, &noise);
+        let threads = self.member_threads;
+        let (loss, log_prob) = if threads.is_parallel() {
+            // The same loss and actor gradient, the members computed on several threads.
+            let pi = self.actor.sample(obs, &noise);
+            let (value, surrogate) = threads.actor_loss(&self.critic, &self.alpha(), obs, &pi);
             self.actor_opt.minimize(&surrogate);
-            (value, log_prob)
+            (value, pi.log_prob)
         } else {
             let (loss, log_prob) = self.actor_loss(obs, &noise);
             self.actor_opt.minimize(&loss);
@@ -393,33 +338,6 @@ impl Sac {
             loss: loss.detach(),
             entropy: -log_prob.mean(None).detach(),
         }
-    }
-
-    /// Spec 5.3 "Actor" with the critic members split over [`Sac::member_threads`] threads:
-    /// (the loss's value, a surrogate with the loss's gradient for the actor, log π `[B]`).
-    /// Each shard returns Σ_k Q_k(s, a) over its members and its gradient with respect to the
-    /// action; with g = ∂ mean_k Q_k / ∂a, the surrogate replaces mean_k Q_k(s, a) by a·g, whose
-    /// gradient through a = tanh(u(θ)) is the same.
-    fn actor_loss_sharded(&self, obs: &Tensor, noise: &Tensor) -> (Tensor, Tensor, Tensor) {
-        let pi = self.actor.sample(obs, noise);
-        let members = self.critic.members();
-        let jobs: Vec<ActorShardJob> = shard_ranges(members, self.member_shards)
-            .into_iter()
-            .map(|(start, len)| ActorShardJob {
-                shard: self.critic.shard(start, len, false),
-                obs: obs.shallow_clone(),
-                action: pi.action.detach().set_requires_grad(true),
-            })
-            .collect();
-        let parts = run_on_threads(jobs, self.member_threads, ActorShardJob::run);
-        let sum = |ts: Vec<&Tensor>| Tensor::stack(&ts, 0).sum_dim_intlist(0, false, None);
-        let q_mean = sum(parts.iter().map(|p| &p.q_sum).collect()) / members as f64;
-        let grad_mean = sum(parts.iter().map(|p| &p.action_grad).collect()) / members as f64;
-        let alpha = self.alpha();
-        let value = policy_loss(&alpha, &pi.log_prob.detach(), &q_mean.unsqueeze(0));
-        let linearised_q = (&pi.action * grad_mean).sum_dim_intlist(-1, false, None);
-        let surrogate = policy_loss(&alpha, &pi.log_prob, &linearised_q.unsqueeze(0));
-        (value, surrogate, pi.log_prob)
     }
 
     /// The actor loss for given policy noise: (loss, log π `[B]`).
@@ -461,6 +379,31 @@ impl Sac {
     /// Deterministic actions tanh(μ) for evaluation (spec 5.7), `[B, A]`.
     pub fn act_deterministic(&self, obs: &Tensor) -> Tensor {
         tch::no_grad(|| self.actor.deterministic(obs))
+    }
+
+    /// Runs the critic ensemble's members on `threads` threads (at most one per member), with
+    /// [`crate::members::SHARDS_PER_THREAD`] shards each: same losses, same gradients up to float
+    /// summation order, same RNG draws (see [`crate::members`]). CUDA ignores it.
+    pub fn set_member_threads(&mut self, threads: usize) {
+        let members = self.critic.members() as usize;
+        self.member_threads = MemberThreads::per_thread(threads, members, self.device);
+    }
+
+    /// [`Sac::set_member_threads`] with an explicit shard count (clamped to 1..=members; at
+    /// least one shard per thread), for benchmarks.
+    pub fn set_member_parallelism(&mut self, threads: usize, shards: usize) {
+        let members = self.critic.members() as usize;
+        self.member_threads = MemberThreads::new(threads, shards, members, self.device);
+    }
+
+    /// See [`Sac::set_member_threads`].
+    pub fn member_threads(&self) -> usize {
+        self.member_threads.threads()
+    }
+
+    /// See [`Sac::set_member_parallelism`].
+    pub fn member_shards(&self) -> usize {
+        self.member_threads.shards()
     }
 
     pub fn actor(&self) -> &Actor {
@@ -571,193 +514,20 @@ pub fn polyak_update(pairs: &[(Tensor, Tensor)], tau: f64) {
     });
 }
 
-/// `shards` contiguous (start, len) member ranges covering 0..members, sizes differing by at most
-/// one (the first ones get the extra members).
-pub fn shard_ranges(members: i64, shards: usize) -> Vec<(i64, i64)> {
-    let shards = (shards as i64).clamp(1, members.max(1));
-    let (base, extra) = (members / shards, members % shards);
-    let mut start = 0;
-    (0..shards)
-        .map(|s| {
-            let len = base + i64::from(s < extra);
-            let range = (start, len);
-            start += len;
-            range
-        })
-        .collect()
-}
-
-/// Shards per member thread (see [`Sac::set_member_threads`]). One: on the 2-core machine with a
-/// MetaWorld run's actors beside the learner, two shards per thread (finer work, balanced by the
-/// queue) were no faster (54-62 critic updates/s; one shard per thread 54-70 in the same run).
-pub const SHARDS_PER_THREAD: usize = 1;
-
-/// Runs `work` on every job with `threads` threads, the calling one and `threads − 1` scoped
-/// threads with single-threaded libtorch ops, each taking the next job from a shared queue until
-/// none is left; results in job order, whoever ran them. A panic in a job is re-raised.
-fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, threads: usize, work: fn(J) -> T) -> Vec<T> {
-    use std::sync::atomic::{AtomicUsize, Ordering};
-    use std::sync::Mutex;
-    let count = jobs.len();
-    let queue: Vec<Mutex<Option<J>>> = jobs.into_iter().map(|j| Mutex::new(Some(j))).collect();
-    let results: Vec<Mutex<Option<T>>> = (0..count).map(|_| Mutex::new(None)).collect();
-    let next = AtomicUsize::new(0);
-    let drain = || loop {
-        let i = next.fetch_add(1, Ordering::Relaxed);
-        if i >= count {
-            break;
-        }
-        let job = queue[i]
-            .lock()
-            .expect("job slot")
-            .take()
-            .expect("each job taken once");
-        *results[i].lock().expect("result slot") = Some(work(job));
-    };
-    std::thread::scope(|scope| {
-        let helpers: Vec<_> = (1..threads.min(count))
-            .map(|_| {
-                scope.spawn(|| {
-                    tch::set_num_threads(1);
-                    drain()
-                })
-            })
-            .collect();
-        drain();
-        for helper in helpers {
-            helper
-                .join()
-                .unwrap_or_else(|e| std::panic::resume_unwind(e));
-        }
-    });
-    results
-        .into_iter()
-        .map(|r| r.into_inner().expect("result slot").expect("every job ran"))
-        .collect()
-}
-
-/// One shard's share of a critic update (see `Sac::critic_gradients_sharded`).
-struct CriticShardJob {
-    shard: CriticEnsemble,
-    /// E_s / E.
-    weight: f64,
-    obs: Tensor,
-    action: Tensor,
-    target: Tensor,
-}
-
-struct CriticShardPart {
-    loss: Tensor,
-    q_sum: Tensor,
-    grads: Vec<Tensor>,
-}
-
-impl CriticShardJob {
-    fn run(self) -> CriticShardPart {
-        let q = self.shard.forward(&self.obs, &self.action);
-        let loss = mean_squared_td_error(&q, &self.target) * self.weight;
-        let params: Vec<Tensor> = self
-            .shard
-            .named_parameters()
-            .into_iter()
-            .map(|(_, p)| p)
-            .collect();
-        let grads = Tensor::run_backward(&[&loss], &params, false, false);
-        CriticShardPart {
-            loss: loss.detach(),
-            q_sum: q.detach().sum(None),
-            grads,
-        }
-    }
-}
-
-/// One shard's share of an actor update (see `Sac::actor_loss_sharded`).
-struct ActorShardJob {
-    /// Parameters without gradients: only ∂Q/∂a is taken.
-    shard: CriticEnsemble,
-    obs: Tensor,
-    /// A leaf copy of the policy's action, requiring gradients.
-    action: Tensor,
-}
-
-struct ActorShardPart {
-    /// Σ_k Q_k(s, a) over the shard's members, `[B]`.
-    q_sum: Tensor,
-    /// ∂ Σ_k Σ_b Q_k(s_b, a_b) / ∂a, `[B, A]`.
-    action_grad: Tensor,
-}
-
-impl ActorShardJob {
-    fn run(self) -> ActorShardPart {
-        let q_sum = self
-            .shard
-            .forward(&self.obs, &self.action)
-            .sum_dim_intlist(0, false, None);
-        let mut grads = Tensor::run_backward(&[&q_sum.sum(None)], &[&self.action], false, false);
-        ActorShardPart {
-            q_sum: q_sum.detach(),
-            action_grad: grads.pop().expect("one input, one gradient"),
-        }
-    }
-}
-
-/// Options that cannot work, rejected before anything is allocated.
-fn validate(obs_dim: usize, action_dim: usize, cfg: &SacConfig, net: &NetworkConfig) -> Result<()> {
-    let fail = |msg: String| Err(LearnerError::Config(msg));
+/// Dims that cannot work, and the config rules of [`RunConfig::validate`] (which every loaded
+/// config has passed already): an agent can also be built from sections that never went through a
+/// config file (benchmarks, tests), and must not start on options that cannot work.
+fn check(obs_dim: usize, action_dim: usize, cfg: &SacConfig, net: &NetworkConfig) -> Result<()> {
     if obs_dim == 0 || action_dim == 0 {
-        return fail(format!(
+        return Err(LearnerError::Config(format!(
             "obs_dim {obs_dim} and action_dim {action_dim} must be positive"
-        ));
+        )));
     }
-    if cfg.critic_ensemble == 0 {
-        return fail("sac.critic_ensemble must be at least 1".into());
-    }
-    if cfg.target_pool == 0 || cfg.target_pool > cfg.critic_ensemble {
-        return fail(format!(
-            "sac.target_pool ({}) must be in 1..={} (sac.critic_ensemble)",
-            cfg.target_pool, cfg.critic_ensemble
-        ));
-    }
-    if cfg.num_min_qs == 0 || cfg.num_min_qs > cfg.target_pool {
-        return fail(format!(
-            "sac.num_min_qs ({}) must be in 1..={} (sac.target_pool): members are drawn without replacement",
-            cfg.num_min_qs, cfg.target_pool
-        ));
-    }
-    if cfg.batch_size == 0 || cfg.grad_updates_per_step == 0 || cfg.actor_update_freq == 0 {
-        return fail(
-            "sac.batch_size, sac.grad_updates_per_step and sac.actor_update_freq must be positive"
-                .into(),
-        );
-    }
-    if !cfg
-        .grad_updates_per_step
-        .is_multiple_of(cfg.actor_update_freq)
-    {
-        return fail(format!(
-            "sac.grad_updates_per_step ({}) must be a multiple of sac.actor_update_freq ({}) (spec 5.2)",
-            cfg.grad_updates_per_step, cfg.actor_update_freq
-        ));
-    }
-    if cfg.initial_temperature.is_nan() || cfg.initial_temperature <= 0.0 {
-        return fail(format!(
-            "sac.initial_temperature ({}) must be positive",
-            cfg.initial_temperature
-        ));
-    }
-    if net.actor_features.is_empty() || net.critic_features.is_empty() {
-        return fail(
-            "network.actor_features and network.critic_features need at least one layer".into(),
-        );
-    }
-    if net.actor_features.contains(&0) || net.critic_features.contains(&0) {
-        return fail("network layer widths must be positive".into());
-    }
-    if net.log_std_min.is_nan() || net.log_std_max.is_nan() || net.log_std_min >= net.log_std_max {
-        return fail(format!(
-            "network.log_std_min ({}) must be below network.log_std_max ({})",
-            net.log_std_min, net.log_std_max
-        ));
-    }
-    Ok(())
+    let run = RunConfig {
+        sac: cfg.clone(),
+        network: net.clone(),
+        ..RunConfig::default()
+    };
+    run.validate()
+        .map_err(|err| LearnerError::Config(err.to_string()))
 }

@@ -1,4 +1,4 @@
-//! The learner's same-host transport (ARCHITECTURE "Processes"): transition frames from actors on
+//! The learner's same-host transport (docs/DESIGN.md, "Processes"): transition frames from actors on
 //! this host over iceoryx2 shared memory into the *same* ingest queue as `PushTransitions`, and
 //! every policy version out to them.
 //!

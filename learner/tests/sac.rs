@@ -434,16 +434,6 @@ fn member_threads_give_the_batched_updates() {
 }
 
 #[test]
-fn shard_ranges_split_members_evenly_and_contiguously() {
-    use rfcl_learner::sac::shard_ranges;
-    assert_eq!(shard_ranges(10, 1), vec![(0, 10)]);
-    assert_eq!(shard_ranges(10, 2), vec![(0, 5), (5, 5)]);
-    assert_eq!(shard_ranges(10, 3), vec![(0, 4), (4, 3), (7, 3)]);
-    assert_eq!(shard_ranges(2, 5), vec![(0, 1), (1, 1)]);
-    assert_eq!(shard_ranges(4, 0), vec![(0, 4)]);
-}
-
-#[test]
 fn fixed_temperature_stays_put() {
     let (cfg, _) = small_config();
     let cfg = SacConfig {

@@ -6,7 +6,7 @@ mod service_support;
 use std::time::Duration;
 
 use rfcl_learner::checkpoint;
-use rfcl_learner::policy::PolicyNet;
+use rfcl_policy::PolicyNet;
 use rfcl_proto::v1;
 use service_support::*;
 

@@ -8,7 +8,7 @@ use std::process::Command;
 use std::time::Duration;
 
 use rfcl_learner::checkpoint;
-use rfcl_learner::policy::PolicyNet;
+use rfcl_policy::PolicyNet;
 use service_support::*;
 
 const W: u64 = 8;

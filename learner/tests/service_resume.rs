@@ -1,7 +1,6 @@
-//! SIGKILL after a checkpoint, then `--resume` (or a plain restart on the same run directory)
-//! (ARCHITECTURE "Resume that comes back empty"): the resumed learner holds exactly the
-//! checkpointed weights, optimiser states, temperature, counters, RNG states and both buffers,
-//! and, fed the same transitions, ends bit for bit where an uninterrupted run ends. A learner
+//! SIGKILL after a checkpoint, then `--resume` (or a plain restart on the same run directory):
+//! the resumed learner holds exactly the checkpointed weights, optimiser states, temperature,
+//! counters, RNG states and both buffers, and, fed the same transitions, ends bit for bit where an uninterrupted run ends. A learner
 //! killed before its first env-step checkpoint resumes from its wall-time one
 //! (`sac.save_every_s`).
 mod service_support;

@@ -1,4 +1,4 @@
-//! The stage transition (spec 4, ARCHITECTURE "Semantics") across real processes: the curriculum
+//! The stage transition (spec 4) across real processes: the curriculum
 //! server is driven to stage 2 by this test's own Acquire/Report calls; the learner then moves
 //! its online buffer into the offline buffer, empties the online buffer, drops and counts late
 //! records of the old epoch, and collects `sac.num_seed_steps` policy-only steps before it

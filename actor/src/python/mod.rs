@@ -9,8 +9,8 @@
 //! benches/RESULTS.md): the pipe costs a few percent of a ManiSkill step, which is dominated by
 //! the simulator and its Python. In exchange, a SAPIEN segfault, an abort in a C extension or a
 //! leak kills one worker, not the actor, its policy and its connections; the actor also links
-//! neither libpython nor a second copy of libtorch (ManiSkill imports Python torch: design/STACK.md,
-//! "One libtorch per process"), and K envs step on K interpreters without sharing a GIL.
+//! neither libpython nor a second copy of libtorch (ManiSkill imports Python torch, and two libtorch copies in one
+//! process conflict), and K envs step on K interpreters without sharing a GIL.
 //!
 //! **Failures.**
 //! * A Python exception becomes [`EnvError::Simulator`] carrying the Python traceback; an

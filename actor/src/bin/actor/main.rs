@@ -1,5 +1,5 @@
 //! `actor`: steps simulator envs with the latest policy, resets them from curriculum leases and
-//! streams transitions to the learner (ARCHITECTURE.md, "Processes").
+//! streams transitions to the learner (docs/DESIGN.md, "Processes").
 //!
 //! It asks the learner for the run (GetRunInfo: env, dims, curriculum address, resolved config,
 //! run seed, spec 6.4's action scale: with `train.data_action_scale` the envs get a / s), makes `--envs` envs, watches the learner's policies, and then either trains

@@ -1,4 +1,4 @@
-//! The actor's transport choice and its shared-memory side (ARCHITECTURE "Processes": same-host
+//! The actor's transport choice and its shared-memory side (docs/DESIGN.md, "Processes": same-host
 //! actors use iceoryx2, remote ones gRPC; one code path decides).
 //!
 //! [`decide`] is that code path. `--transport auto` (the default) uses shared memory when the

@@ -36,7 +36,7 @@ pub struct Bridge {
 
 impl Bridge {
     /// Initialises Python (once per process), puts the venv's site-packages on `sys.path` (an
-    /// embedded interpreter does not know it runs for a venv: design/STACK.md) and makes the
+    /// embedded interpreter does not know it runs for a venv) and makes the
     /// adapter. The error is the Python traceback.
     pub fn new(suite: &str, env_id: &str, options_json: &str) -> Result<Self, String> {
         Python::attach(|py| {
