@@ -69,7 +69,6 @@ impl Forward {
     /// Levels 0..num_seeds-1 are the seeds; with `include_demo_starts`, level num_seeds + i is the
     /// initial state of demo i.
     pub fn new(config: ForwardConfig, demos: &[DemoMeta]) -> Result<Self, CurriculumError> {
-        validate(&config)?;
         let seeds = (0..u64::from(config.num_seeds)).map(LevelSource::Seed);
         let demo_starts = demos
             .iter()
@@ -91,6 +90,11 @@ impl Forward {
         if levels.is_empty() {
             return Err(CurriculumError::NoLevels);
         }
+        // Configs built in code skip config resolution: hold them to the same rule it applies
+        // (after the level count, which names the more specific problem).
+        config
+            .validate()
+            .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))?;
         Ok(Self {
             config,
             levels,
@@ -292,25 +296,6 @@ pub fn level_probabilities(config: &ForwardConfig, scores: &[f64], staleness: &[
         }
     };
     normalise(&mixed)
-}
-
-fn validate(config: &ForwardConfig) -> Result<(), CurriculumError> {
-    let invalid = |why: &str| Err(CurriculumError::InvalidConfig(format!("forward.{why}")));
-    if config.score_window == 0 || config.score_window > config.returns_buffer_size {
-        return invalid("score_window must be between 1 and returns_buffer_size");
-    }
-    for (name, t) in [
-        ("score_temperature", config.score_temperature),
-        ("staleness_temperature", config.staleness_temperature),
-    ] {
-        if !t.is_finite() || t <= 0.0 {
-            return invalid(&format!("{name} must be finite and positive"));
-        }
-    }
-    if !(0.0..=1.0).contains(&config.staleness_coef) {
-        return invalid("staleness_coef must be in [0, 1]");
-    }
-    Ok(())
 }
 
 #[cfg(test)]
@@ -523,5 +508,21 @@ mod tests {
             Forward::new(wide, &[]),
             Err(CurriculumError::InvalidConfig(_))
         ));
+    }
+
+    #[test]
+    fn configs_built_in_code_meet_the_rule_of_resolved_ones() {
+        // The score threshold is a success rate: the curriculum used to take any value here.
+        let above_one = ForwardConfig {
+            score_threshold: 1.5,
+            ..seeds_only(3)
+        };
+        let Err(CurriculumError::InvalidConfig(why)) = Forward::new(above_one, &[]) else {
+            panic!("a score threshold of 1.5 was accepted");
+        };
+        assert!(
+            why.contains("forward.score_threshold") && why.contains("in [0, 1]"),
+            "{why}"
+        );
     }
 }

@@ -21,12 +21,21 @@ pub use curriculum::{
 };
 pub use forward::{Forward, Level, LevelSource};
 pub use reverse::{DemoMeta, DemoProgress, ReportEffect, Reverse, StartChoice};
-pub use stage::{Stage, StageChange, StageMachine};
+pub use stage::{Stage, StageChange, StageMachine, StageStatus};
 
 // The service around the pure logic.
+//
+// * `state`: the server state (curriculum, leases, counters) and its transitions, in domain types.
+// * `views`: read models built from the state (the dashboard's view, the PointMaze heatmap).
+// * `service`: the handles a running server shares between its tasks.
+// * `grpc`: the tonic handlers, where wire messages are converted.
+// * `dashboard`: rendering of the views (page, charts, metrics); `server`: the process's tasks.
 pub mod bench;
 pub mod dashboard;
+pub mod grpc;
 pub mod leases;
 pub mod server;
 pub mod service;
 pub mod snapshot;
+pub mod state;
+pub mod views;

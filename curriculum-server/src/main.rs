@@ -8,7 +8,8 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use rfcl_core::demo::DemoSet;
 use rfcl_curriculum::server::{serve, Bound};
-use rfcl_curriculum::service::{demo_metas, unix_now, DemoResets, ServerState, Shared};
+use rfcl_curriculum::service::Shared;
+use rfcl_curriculum::state::{demo_metas, unix_now, DemoResets, ServerState};
 use rfcl_curriculum::{snapshot, Curriculum};
 use rfcl_proto::auth::ServerAuth;
 

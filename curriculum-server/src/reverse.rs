@@ -132,7 +132,10 @@ impl Reverse {
         demos: &[DemoMeta],
         horizon: u32,
     ) -> Result<Self, CurriculumError> {
-        validate(&config)?;
+        // Configs built in code skip config resolution: hold them to the same rule it applies.
+        config
+            .validate()
+            .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))?;
         if demos.is_empty() {
             return Err(CurriculumError::NoDemos);
         }
@@ -377,23 +380,6 @@ fn push(fifo: &mut VecDeque<bool>, value: bool) {
 
 fn success_rate(fifo: &VecDeque<bool>) -> f64 {
     fifo.iter().filter(|&&s| s).count() as f64 / fifo.len() as f64
-}
-
-fn validate(config: &ReverseConfig) -> Result<(), CurriculumError> {
-    let invalid = |why: &str| Err(CurriculumError::InvalidConfig(format!("reverse.{why}")));
-    if config.per_demo_buffer_size == 0 {
-        return invalid("per_demo_buffer_size must be at least 1");
-    }
-    let probs = &config.geometric_probs;
-    let total: f64 = probs.iter().sum();
-    if probs.iter().any(|p| !p.is_finite() || *p < 0.0) || total <= 0.0 {
-        return invalid("geometric_probs must be finite, non-negative and not all zero");
-    }
-    let weight = config.solved_demo_weight;
-    if !weight.is_finite() || weight < 0.0 {
-        return invalid("solved_demo_weight must be finite and non-negative");
-    }
-    Ok(())
 }
 
 #[cfg(test)]
@@ -657,6 +643,29 @@ mod tests {
         assert_eq!(
             reverse.report(1, 0, true),
             Err(CurriculumError::UnknownDemo { demo: 1, count: 1 })
+        );
+    }
+
+    #[test]
+    fn geometric_probs_must_sum_to_one_as_config_resolution_requires() {
+        let short = ReverseConfig {
+            geometric_probs: vec![0.5, 0.25, 0.15],
+            ..ReverseConfig::default()
+        };
+        let Err(CurriculumError::InvalidConfig(why)) = Reverse::new(short, &[demo(3, 1)], 100)
+        else {
+            panic!("probabilities summing to 0.9 were accepted");
+        };
+        assert!(
+            why.contains("reverse.geometric_probs") && why.contains("must sum to 1"),
+            "{why}"
+        );
+        // The same rule, word for word, as a resolved config gets.
+        let mut run = rfcl_core::config::RunConfig::default();
+        run.reverse.geometric_probs = vec![0.5, 0.25, 0.15];
+        assert!(
+            why.ends_with(&run.validate().unwrap_err().to_string()),
+            "{why}"
         );
     }
 }

@@ -27,7 +27,9 @@ use tokio::time::Instant;
 use tonic::server::NamedService;
 use tonic::service::interceptor::InterceptedService;
 
-use crate::service::{unix_now, CurriculumService, Shared};
+use crate::grpc::CurriculumService;
+use crate::service::Shared;
+use crate::state::unix_now;
 use crate::{dashboard, snapshot};
 
 /// The page refreshes itself this often.
@@ -373,7 +375,7 @@ pub async fn serve(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::service::{DemoResets, ServerState};
+    use crate::state::{DemoResets, ServerState};
     use crate::{Curriculum, DemoMeta};
     use rfcl_core::config::RunConfig;
     use rfcl_core::lease::{AcquireRequest, EpisodeReport, ResetArgs};

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::service::ServerState;
+use crate::state::ServerState;
 
 /// Bumped whenever the snapshot's shape changes; older files are refused with a clear error.
 pub const SNAPSHOT_FORMAT: u32 = 1;

@@ -28,6 +28,35 @@ pub struct StageChange {
     pub env_steps: u64,
 }
 
+/// Where the run stands: what the learner and the actors are told at every stage change.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StageStatus {
+    /// The stage now; `Finished` once the run is over.
+    pub stage: Stage,
+    /// The curriculum stage the run is in or, once finished, the one it finished in (never
+    /// `Finished`): a finished run still says which curriculum its last episodes came from.
+    pub curriculum_stage: Stage,
+    /// Increases by one on every stage change; starts at 0.
+    pub epoch: u64,
+    /// Env steps at which stage 1 ended, once it has.
+    pub stage_1_end_env_steps: Option<u64>,
+}
+
+impl StageStatus {
+    pub fn finished(&self) -> bool {
+        self.stage == Stage::Finished
+    }
+
+    /// The stage number on the wire and the dashboard: 1 (reverse) or 2 (forward); a finished run
+    /// keeps the number of the stage it finished in.
+    pub fn number(&self) -> u32 {
+        match self.curriculum_stage {
+            Stage::Forward => 2,
+            Stage::Reverse | Stage::Finished => 1,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct StageMachine {
     stage: Stage,
@@ -65,13 +94,19 @@ impl StageMachine {
         self.stage
     }
 
-    /// The stage number on the wire and the dashboard: 1 (reverse) or 2 (forward); a finished run
-    /// keeps the number of the stage it finished in.
-    pub fn number(&self) -> u32 {
-        match self.finished_in.unwrap_or(self.stage) {
-            Stage::Forward => 2,
-            Stage::Reverse | Stage::Finished => 1,
+    /// Where the run stands, all of it at once.
+    pub fn status(&self) -> StageStatus {
+        StageStatus {
+            stage: self.stage,
+            curriculum_stage: self.finished_in.unwrap_or(self.stage),
+            epoch: self.epoch,
+            stage_1_end_env_steps: self.stage_1_end_env_steps,
         }
+    }
+
+    /// [`StageStatus::number`] of the current status.
+    pub fn number(&self) -> u32 {
+        self.status().number()
     }
 
     /// Ends the run at `env_steps`, in whichever stage it is (the stop rule). Does nothing when it
@@ -170,6 +205,16 @@ mod tests {
             Some((Stage::Forward, 2))
         );
         assert_eq!((stages.stage(), stages.number()), (Stage::Finished, 2));
+        let status = stages.status();
+        assert!(status.finished());
+        assert_eq!(
+            (
+                status.curriculum_stage,
+                status.epoch,
+                status.stage_1_end_env_steps
+            ),
+            (Stage::Forward, 2, Some(500))
+        );
         assert_eq!(stages.end_stage_1(1000), None);
     }
 

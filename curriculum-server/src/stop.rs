@@ -5,7 +5,7 @@
 //! `rfcl train` reports it.
 use std::collections::BTreeMap;
 
-use crate::service::EvalAggregate;
+use crate::state::EvalAggregate;
 
 /// Evaluations whose running mean decides the stop.
 pub const STOP_WINDOW: usize = 5;

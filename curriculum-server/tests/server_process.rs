@@ -10,8 +10,8 @@ use rand_chacha::ChaCha8Rng;
 use rfcl_core::demo::DemoSet;
 use rfcl_core::lease::{AcquireRequest, ResetLease};
 use rfcl_curriculum::dashboard::DashboardView;
-use rfcl_curriculum::service::{DemoResets, ServerState};
 use rfcl_curriculum::snapshot;
+use rfcl_curriculum::state::{DemoResets, ServerState};
 use rfcl_proto::v1;
 
 fn acquire_req(actor_id: u32) -> v1::AcquireRequest {
@@ -155,11 +155,7 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     let mut restarted = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
     let mut client = restarted.client().await;
     let resumed = state_view(&mut client).await;
-    let snap_view = snap.view(
-        "ctest",
-        "PointMaze-v0",
-        rfcl_curriculum::service::unix_now(),
-    );
+    let snap_view = snap.view("ctest", "PointMaze-v0", rfcl_curriculum::state::unix_now());
     assert_eq!(curriculum_part(&resumed), curriculum_part(&snap_view));
 
     // The restarted server hands out exactly what the snapshot's state hands out in-process.

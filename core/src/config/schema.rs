@@ -88,7 +88,7 @@ pub enum MatmulPrecision {
     Bf16,
 }
 
-/// How learner updates and env steps are paced (ARCHITECTURE "UTD modes").
+/// How learner updates and env steps are paced (docs/LEARNER.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum UtdMode {

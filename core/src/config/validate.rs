@@ -4,7 +4,7 @@ use std::fmt::{self, Display};
 use std::ops::Bound::{self, Excluded, Included, Unbounded};
 
 use super::error::ConfigError;
-use super::RunConfig;
+use super::{ForwardConfig, ReverseConfig, RunConfig};
 
 impl RunConfig {
     /// Checks every value against its allowed range and the rules between options. Returns the
@@ -15,8 +15,8 @@ impl RunConfig {
         self.validate_sac()?;
         self.validate_network()?;
         self.validate_train()?;
-        self.validate_reverse()?;
-        self.validate_forward()?;
+        self.reverse.validate()?;
+        self.forward.validate()?;
         self.validate_service()?;
         at_least_opt("learner.threads", self.learner.threads, 1)
     }
@@ -211,86 +211,6 @@ impl RunConfig {
         )
     }
 
-    fn validate_reverse(&self) -> Result<(), ConfigError> {
-        let reverse = &self.reverse;
-        let probs = &reverse.geometric_probs;
-        ensure(!probs.is_empty(), "reverse.geometric_probs", || {
-            "must not be empty".into()
-        })?;
-        for p in probs {
-            within("reverse.geometric_probs", *p, UNIT)?;
-        }
-        let sum: f64 = probs.iter().sum();
-        ensure((sum - 1.0).abs() <= 1e-9, "reverse.geometric_probs", || {
-            format!("must sum to 1 (spec 2.3), got {probs:?} summing to {sum}")
-        })?;
-        at_least("reverse.reverse_step_size", reverse.reverse_step_size, 1)?;
-        at_least(
-            "reverse.per_demo_buffer_size",
-            reverse.per_demo_buffer_size,
-            1,
-        )?;
-        within(
-            "reverse.demo_horizon_to_max_steps_ratio",
-            reverse.demo_horizon_to_max_steps_ratio,
-            REAL,
-        )?;
-        within(
-            "reverse.solved_demo_weight",
-            reverse.solved_demo_weight,
-            Interval(Excluded(0.0), Included(1.0)),
-        )?;
-        within(
-            "reverse.solved_frac_threshold",
-            reverse.solved_frac_threshold,
-            UNIT,
-        )?;
-        within(
-            "reverse.global_success_threshold",
-            reverse.global_success_threshold,
-            UNIT,
-        )?;
-        at_least(
-            "reverse.max_trailing_success_states",
-            reverse.max_trailing_success_states,
-            1,
-        )
-    }
-
-    fn validate_forward(&self) -> Result<(), ConfigError> {
-        let forward = &self.forward;
-        at_least("forward.num_seeds", forward.num_seeds, 1)?;
-        within(
-            "forward.score_temperature",
-            forward.score_temperature,
-            POSITIVE,
-        )?;
-        within(
-            "forward.staleness_temperature",
-            forward.staleness_temperature,
-            POSITIVE,
-        )?;
-        within("forward.staleness_coef", forward.staleness_coef, UNIT)?;
-        at_least(
-            "forward.returns_buffer_size",
-            forward.returns_buffer_size,
-            1,
-        )?;
-        at_least("forward.score_window", forward.score_window, 1)?;
-        ensure(
-            forward.score_window <= forward.returns_buffer_size,
-            "forward.score_window",
-            || {
-                format!(
-                    "must be <= forward.returns_buffer_size ({}), got {}",
-                    forward.returns_buffer_size, forward.score_window
-                )
-            },
-        )?;
-        within("forward.score_threshold", forward.score_threshold, UNIT)?;
-        within("forward.initial_score", forward.initial_score, REAL)
-    }
-
     fn validate_service(&self) -> Result<(), ConfigError> {
         let service = &self.service;
         at_least("service.num_actors", service.num_actors, 1)?;
@@ -332,6 +252,85 @@ impl RunConfig {
             )?;
         }
         Ok(())
+    }
+}
+
+impl ReverseConfig {
+    /// The rules of the `reverse` section on their own. [`RunConfig::validate`] applies them to
+    /// every resolved config; the reverse curriculum applies them to sections built in code, so
+    /// both hold a config to the same rule.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let probs = &self.geometric_probs;
+        ensure(!probs.is_empty(), "reverse.geometric_probs", || {
+            "must not be empty".into()
+        })?;
+        for p in probs {
+            within("reverse.geometric_probs", *p, UNIT)?;
+        }
+        let sum: f64 = probs.iter().sum();
+        ensure((sum - 1.0).abs() <= 1e-9, "reverse.geometric_probs", || {
+            format!("must sum to 1 (spec 2.3), got {probs:?} summing to {sum}")
+        })?;
+        at_least("reverse.reverse_step_size", self.reverse_step_size, 1)?;
+        at_least("reverse.per_demo_buffer_size", self.per_demo_buffer_size, 1)?;
+        within(
+            "reverse.demo_horizon_to_max_steps_ratio",
+            self.demo_horizon_to_max_steps_ratio,
+            REAL,
+        )?;
+        within(
+            "reverse.solved_demo_weight",
+            self.solved_demo_weight,
+            Interval(Excluded(0.0), Included(1.0)),
+        )?;
+        within(
+            "reverse.solved_frac_threshold",
+            self.solved_frac_threshold,
+            UNIT,
+        )?;
+        within(
+            "reverse.global_success_threshold",
+            self.global_success_threshold,
+            UNIT,
+        )?;
+        at_least(
+            "reverse.max_trailing_success_states",
+            self.max_trailing_success_states,
+            1,
+        )
+    }
+}
+
+impl ForwardConfig {
+    /// The rules of the `forward` section on their own, held to the same rule as
+    /// [`ReverseConfig::validate`]: resolved configs and sections built in code alike.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        at_least("forward.num_seeds", self.num_seeds, 1)?;
+        within(
+            "forward.score_temperature",
+            self.score_temperature,
+            POSITIVE,
+        )?;
+        within(
+            "forward.staleness_temperature",
+            self.staleness_temperature,
+            POSITIVE,
+        )?;
+        within("forward.staleness_coef", self.staleness_coef, UNIT)?;
+        at_least("forward.returns_buffer_size", self.returns_buffer_size, 1)?;
+        at_least("forward.score_window", self.score_window, 1)?;
+        ensure(
+            self.score_window <= self.returns_buffer_size,
+            "forward.score_window",
+            || {
+                format!(
+                    "must be <= forward.returns_buffer_size ({}), got {}",
+                    self.returns_buffer_size, self.score_window
+                )
+            },
+        )?;
+        within("forward.score_threshold", self.score_threshold, UNIT)?;
+        within("forward.initial_score", self.initial_score, REAL)
     }
 }
 

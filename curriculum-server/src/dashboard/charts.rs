@@ -1,0 +1,272 @@
+//! The dashboard's charts, drawn server-side as SVG with plotters. A chart that fails to draw
+//! becomes an error paragraph in the page rather than failing the page.
+use plotters::prelude::*;
+
+use super::view::{DemoBar, EvalPoint, LevelRow, MazeSnapshot, MazeView, ProgressPoint};
+
+const CHART_W: u32 = 640;
+
+fn chart_err<E: std::fmt::Debug>(e: E) -> String {
+    format!("<p class=err>chart failed: {e:?}</p>")
+}
+
+/// Horizontal bars, one per demo: the filled part is the part of the demo the curriculum has
+/// reached, (S_i - 1 - t_i) / (S_i - 1); solved demos are green.
+pub fn demo_bars_svg(demos: &[DemoBar]) -> String {
+    let height = 40 + 26 * demos.len().max(1) as u32;
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (CHART_W, height)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let n = demos.len().max(1) as i32;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0f64..1f64, (0..n).into_segmented())?;
+        chart
+            .configure_mesh()
+            .disable_y_mesh()
+            .x_desc("fraction of the demo reached (1 - t_i/(S_i-1))")
+            .y_label_formatter(&|v| match v {
+                SegmentValue::CenterOf(i) => demos
+                    .get(*i as usize)
+                    .map(|d| format!("demo {}", d.demo))
+                    .unwrap_or_default(),
+                _ => String::new(),
+            })
+            .draw()?;
+        chart.draw_series(demos.iter().enumerate().map(|(i, d)| {
+            let reached = if d.states > 1 {
+                1.0 - d.t as f64 / (d.states - 1) as f64
+            } else {
+                1.0
+            };
+            let color = if d.solved {
+                GREEN.mix(0.8)
+            } else {
+                BLUE.mix(0.6)
+            };
+            let i = i as i32;
+            Rectangle::new(
+                [
+                    (0.0, SegmentValue::Exact(i)),
+                    (reached, SegmentValue::Exact(i + 1)),
+                ],
+                color.filled(),
+            )
+        }))?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+/// Side of one maze cell in the heatmap, in pixels.
+const MAZE_CELL_PX: u32 = 13;
+
+/// White at 0, the page's green at 1 (opaque: a transparent colour would not be drawn at all).
+fn success_color(rate: f64) -> RGBColor {
+    let rate = rate.clamp(0.0, 1.0);
+    let lerp = |from: u8, to: u8| (from as f64 + (to as f64 - from as f64) * rate).round() as u8;
+    RGBColor(lerp(255, 26), lerp(255, 127), lerp(255, 55))
+}
+
+/// The PointMaze heatmap: one small maze per snapshot, each start cell shaded from white (never
+/// solved) to green (always solved), walls dark, hazard walls dark red, the goal red, the demos'
+/// paths blue (the paper's figure). Cells without eval episodes stay light grey.
+pub fn maze_heatmap_svg(maze: &MazeView) -> String {
+    let rows = maze.map.len().max(1) as u32;
+    let cols = maze.map.iter().map(|r| r.len()).max().unwrap_or(1).max(1) as u32;
+    let panels = maze.snapshots.len().max(1) as u32;
+    let (caption_h, gap) = (30u32, 12u32);
+    let panel_w = cols * MAZE_CELL_PX;
+    let width = panels * panel_w + (panels + 1) * gap;
+    let height = rows * MAZE_CELL_PX + caption_h + gap;
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (width, height)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let empty = MazeSnapshot::default();
+        let snapshots: Vec<&MazeSnapshot> = if maze.snapshots.is_empty() {
+            vec![&empty]
+        } else {
+            maze.snapshots.iter().collect()
+        };
+        for (p, snap) in snapshots.iter().enumerate() {
+            let x0 = gap as i32 + p as i32 * (panel_w + gap) as i32;
+            let caption = if maze.snapshots.is_empty() {
+                "no eval yet".to_string()
+            } else {
+                format!(
+                    "{} steps: {:.0}%",
+                    snap.env_steps,
+                    snap.success_rate * 100.0
+                )
+            };
+            root.draw_text(
+                &caption,
+                &("sans-serif", 15).into_font().color(&BLACK),
+                (x0, 8),
+            )?;
+            let grid = root
+                .clone()
+                .shrink((x0, caption_h as i32), (panel_w, rows * MAZE_CELL_PX));
+            let mut chart = ChartBuilder::on(&grid)
+                .build_cartesian_2d(-0.5f32..cols as f32 - 0.5, rows as f32 - 0.5..-0.5f32)?;
+            for (r, line) in maze.map.iter().enumerate() {
+                for (c, ch) in line.chars().enumerate() {
+                    let color = match ch {
+                        '#' => RGBColor(60, 60, 60).filled(),
+                        'X' => RGBColor(150, 30, 30).filled(),
+                        _ => match snap
+                            .cells
+                            .iter()
+                            .find(|m| (m.row, m.col) == (r as u32, c as u32))
+                        {
+                            Some(m) if m.episodes > 0 => {
+                                success_color(m.successes as f64 / m.episodes as f64).filled()
+                            }
+                            _ => RGBColor(235, 235, 235).filled(),
+                        },
+                    };
+                    let (x, y) = (c as f32, r as f32);
+                    chart.draw_series(std::iter::once(Rectangle::new(
+                        [(x - 0.5, y - 0.5), (x + 0.5, y + 0.5)],
+                        color,
+                    )))?;
+                    if ch == 'G' {
+                        chart.draw_series(std::iter::once(Circle::new((x, y), 4, RED.filled())))?;
+                    }
+                }
+            }
+            for path in &maze.demo_paths {
+                chart.draw_series(std::iter::once(PathElement::new(
+                    path.iter().map(|[x, y]| (*x, *y)).collect::<Vec<_>>(),
+                    BLUE.mix(0.7).stroke_width(2),
+                )))?;
+            }
+        }
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+/// Sampling probability per level, as bars (at most the 60 most likely levels are drawn).
+pub fn level_probabilities_svg(levels: &[LevelRow]) -> String {
+    let mut top: Vec<&LevelRow> = levels.iter().collect();
+    top.sort_by(|a, b| {
+        b.probability
+            .total_cmp(&a.probability)
+            .then(a.level.cmp(&b.level))
+    });
+    top.truncate(60);
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (CHART_W, 220)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let n = top.len().max(1) as i32;
+        let max_p = top.first().map(|l| l.probability).unwrap_or(1.0).max(1e-9);
+        let mut chart = ChartBuilder::on(&root)
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(50)
+            .build_cartesian_2d((0..n).into_segmented(), 0f64..max_p * 1.05)?;
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_desc("levels, most likely first")
+            .y_desc("P(level)")
+            .x_label_formatter(&|_| String::new())
+            .draw()?;
+        chart.draw_series(top.iter().enumerate().map(|(i, l)| {
+            let i = i as i32;
+            let color = match l.score as i64 {
+                3 => RED.mix(0.7),
+                2 => BLUE.mix(0.6),
+                _ => GREEN.mix(0.6),
+            };
+            Rectangle::new(
+                [
+                    (SegmentValue::Exact(i), 0.0),
+                    (SegmentValue::Exact(i + 1), l.probability),
+                ],
+                color.filled(),
+            )
+        }))?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+/// One line of the progress chart: its legend, its colour and what it plots of each sample.
+type Series = (&'static str, RGBColor, fn(&ProgressPoint) -> f64);
+
+/// Curriculum progress and success rates against env steps.
+pub fn progress_svg(history: &[ProgressPoint], evals: &[EvalPoint]) -> String {
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (CHART_W, 260)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let max_x = history
+            .iter()
+            .map(|p| p.env_steps)
+            .chain(evals.iter().map(|e| e.env_steps))
+            .max()
+            .unwrap_or(1)
+            .max(1) as f64;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(40)
+            .build_cartesian_2d(0f64..max_x, 0f64..1.02f64)?;
+        chart.configure_mesh().x_desc("env steps").draw()?;
+        let series: [Series; 3] = [
+            ("start step frac (avg t_i/(S_i-1))", BLUE, |p| {
+                p.start_step_frac_avg
+            }),
+            ("demos solved", GREEN, |p| p.solved_frac),
+            ("train success", MAGENTA, |p| p.train_success_rate),
+        ];
+        for (label, color, f) in series {
+            chart
+                .draw_series(LineSeries::new(
+                    history.iter().map(|p| (p.env_steps as f64, f(p))),
+                    color.stroke_width(2),
+                ))?
+                .label(label)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
+                });
+        }
+        chart
+            .draw_series(LineSeries::new(
+                evals.iter().map(|e| (e.env_steps as f64, e.success_at_end)),
+                RED.stroke_width(2),
+            ))?
+            .label("eval success at end")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], RED.stroke_width(2)));
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}

@@ -1,0 +1,129 @@
+//! The dashboard page: plain HTML with the charts inlined, refreshed by a meta tag.
+use std::fmt::Write as _;
+
+use super::charts::{demo_bars_svg, level_probabilities_svg, maze_heatmap_svg, progress_svg};
+use super::view::{DashboardView, LevelRow};
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// The dashboard page. It refreshes itself every `refresh_s` seconds with a meta tag.
+pub fn render_html(view: &DashboardView, refresh_s: u32) -> String {
+    let mut h = String::new();
+    let _ = write!(
+        h,
+        r#"<!doctype html><html><head><meta charset="utf-8"><meta http-equiv="refresh" content="{refresh_s}">
+<title>rfcl · {name}</title>
+<style>body{{font-family:sans-serif;margin:1.5em;color:#222}} table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#f4f4f4}}
+.kv span{{display:inline-block;margin-right:2em}} .solved{{color:#1a7f37;font-weight:bold}} .err{{color:#b00}}</style>
+</head><body>
+<h1>rfcl curriculum · {name} <small>({env})</small></h1>
+<p class="kv"><span id="stage">stage <b>{stage}</b> (epoch {epoch}){finished}</span><span>env steps <b>{steps}</b></span>
+<span>episodes {episodes} ({eps:.1}/s)</span><span>open leases {open}</span><span>expired leases {expired}</span>
+<span>sim worker restarts {restarts}</span>
+<span>demos solved {solved:.0}%</span></p>
+<p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}, not the lease holder {nothold}, over the time limit {overlim}</span>
+<span>unauthenticated calls {unauth}</span><span>actors forgotten {forgotten}</span><span>snapshot failures {snapfail}</span></p>
+"#,
+        name = esc(&view.run_name),
+        env = esc(&view.env_id),
+        stage = view.stage,
+        epoch = view.stage_epoch,
+        finished = if view.finished {
+            " · <b>run finished</b>"
+        } else {
+            ""
+        },
+        steps = view.env_steps,
+        episodes = view.episodes,
+        eps = view.episodes_per_s,
+        open = view.open_leases,
+        expired = view.expired_leases,
+        restarts = view.sim_worker_restarts,
+        solved = view.solved_frac * 100.0,
+        dup = view.refused_reports.duplicate,
+        rexp = view.refused_reports.expired,
+        unk = view.refused_reports.unknown,
+        epm = view.refused_reports.epoch_mismatch,
+        mal = view.refused_reports.malformed,
+        nothold = view.refused_reports.not_holder,
+        overlim = view.refused_reports.over_time_limit,
+        unauth = view.unauthenticated_calls,
+        forgotten = view.actors_forgotten,
+        snapfail = view.snapshot_failures,
+    );
+    if let Some(s1) = view.stage_1_env_steps {
+        let _ = writeln!(h, "<p>stage 1 ended after <b>{s1}</b> env steps</p>");
+    }
+    h.push_str("<h2>Reverse curriculum: demos</h2>\n");
+    h.push_str(&demo_bars_svg(&view.demos));
+    h.push_str("\n<table id=\"demos\"><tr><th>demo</th><th>t_i</th><th>S_i</th><th>t_i / S_i</th><th>frontier success</th><th>solved</th></tr>\n");
+    for d in &view.demos {
+        let _ = writeln!(
+            h,
+            "<tr class=\"demo-bar\"><td>{}</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.2}</td><td>{}</td></tr>",
+            d.demo,
+            d.t,
+            d.states,
+            d.t as f64 / d.states.max(1) as f64,
+            d.frontier_success_rate,
+            if d.solved { "<span class=solved>✔</span>" } else { "" }
+        );
+    }
+    h.push_str("</table>\n");
+    if let Some(maze) = &view.maze {
+        h.push_str("<h2>PointMaze: eval success per start cell</h2>\n<div id=\"maze-heatmap\">");
+        h.push_str(&maze_heatmap_svg(maze));
+        h.push_str("</div>\n<p>Green: the share of eval episodes from that cell that end at the goal; grey: no episode yet; blue: the demos; red: the goal.</p>\n");
+    }
+    h.push_str("<h2>Progress</h2>\n");
+    h.push_str(&progress_svg(&view.history, &view.evals));
+    if !view.levels.is_empty() {
+        h.push_str("\n<h2>Forward curriculum: level sampling</h2>\n");
+        h.push_str(&level_probabilities_svg(&view.levels));
+        let mut top: Vec<&LevelRow> = view.levels.iter().collect();
+        top.sort_by(|a, b| b.probability.total_cmp(&a.probability));
+        h.push_str("\n<table id=\"levels\"><tr><th>level</th><th>score</th><th>staleness</th><th>P</th></tr>\n");
+        for l in top.iter().take(20) {
+            let _ = writeln!(
+                h,
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.4}</td></tr>",
+                esc(&l.label),
+                l.score,
+                l.staleness,
+                l.probability
+            );
+        }
+        let _ = writeln!(
+            h,
+            "</table><p>{} levels in all; the 20 most likely shown.</p>",
+            view.levels.len()
+        );
+    }
+    if !view.evals.is_empty() {
+        h.push_str("<h2>Evaluation</h2>\n<table><tr><th>policy version</th><th>env steps</th><th>episodes</th><th>success at end</th><th>success once</th><th>return</th></tr>\n");
+        for e in view.evals.iter().rev().take(10) {
+            let _ = writeln!(
+                h,
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td><td>{:.1}</td></tr>",
+                e.policy_version, e.env_steps, e.episodes, e.success_at_end, e.success_once, e.mean_return
+            );
+        }
+        h.push_str("</table>\n");
+    }
+    h.push_str("<h2>Actors</h2>\n<table id=\"actors\"><tr><th>actor</th><th>last seen</th><th>env steps</th><th>episodes</th><th>open leases</th><th>sim worker restarts</th></tr>\n");
+    for a in &view.actors {
+        let _ =
+            writeln!(
+            h,
+            "<tr><td>{}</td><td>{:.1} s ago</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            a.actor_id, a.seconds_since_seen, a.env_steps, a.episodes, a.open_leases, a.sim_restarts
+        );
+    }
+    h.push_str("</table>\n<p><a href=\"/api/state\">JSON</a> · <a href=\"/metrics\">metrics</a></p></body></html>\n");
+    h
+}

@@ -1,0 +1,177 @@
+//! Tests of the dashboard's rendering, over one small view.
+use super::*;
+
+fn view() -> DashboardView {
+    DashboardView {
+        run_name: "test <run>".into(),
+        env_id: "PointMaze-v0".into(),
+        stage: 1,
+        demos: vec![
+            DemoBar {
+                demo: 0,
+                t: 10,
+                states: 41,
+                frontier_success_rate: 0.5,
+                solved: false,
+            },
+            DemoBar {
+                demo: 1,
+                t: 0,
+                states: 30,
+                frontier_success_rate: 1.0,
+                solved: true,
+            },
+        ],
+        history: vec![
+            ProgressPoint {
+                wall_s: 0.0,
+                env_steps: 0,
+                stage: 1,
+                start_step_frac_avg: 1.0,
+                solved_frac: 0.0,
+                train_success_rate: 0.0,
+            },
+            ProgressPoint {
+                wall_s: 5.0,
+                env_steps: 800,
+                stage: 1,
+                start_step_frac_avg: 0.6,
+                solved_frac: 0.5,
+                train_success_rate: 0.4,
+            },
+        ],
+        ..Default::default()
+    }
+}
+
+#[test]
+fn the_page_has_one_bar_row_per_demo_and_escapes_names() {
+    let html = render_html(&view(), 2);
+    assert_eq!(html.matches("class=\"demo-bar\"").count(), 2);
+    assert!(html.contains("test &lt;run&gt;"));
+    assert!(html.contains("http-equiv=\"refresh\" content=\"2\""));
+    assert!(!html.contains("chart failed"));
+}
+
+#[test]
+fn the_page_shows_sim_worker_restarts_in_total_and_per_actor() {
+    let mut v = view();
+    v.sim_worker_restarts = 7;
+    v.actors = vec![ActorRow {
+        actor_id: 3,
+        seconds_since_seen: 1.0,
+        env_steps: 100,
+        episodes: 4,
+        open_leases: 1,
+        sim_restarts: 7,
+    }];
+    let html = render_html(&v, 2);
+    assert!(html.contains("sim worker restarts 7"), "{html}");
+    assert!(
+        html.contains("<td>100</td><td>4</td><td>1</td><td>7</td></tr>"),
+        "{html}"
+    );
+}
+
+#[test]
+fn demo_bars_are_svg_rectangles() {
+    let svg = demo_bars_svg(&view().demos);
+    assert!(svg.starts_with("<svg"));
+    // Background + plot area + one filled rectangle per demo at least.
+    assert!(svg.matches("<rect").count() >= 3, "{svg}");
+    assert!(svg.contains("demo 1"));
+}
+
+#[test]
+fn metrics_use_rfcl_names_and_labels() {
+    let mut v = view();
+    v.refused_reports.duplicate = 3;
+    v.refused_reports.over_time_limit = 4;
+    v.refused_reports.not_holder = 5;
+    v.actors_forgotten = 6;
+    v.snapshot_failures = 7;
+    v.sim_worker_restarts = 2;
+    let text = metrics_text(&v, 42);
+    assert!(
+        text.contains("rfcl_curriculum_sim_worker_restarts_total 2"),
+        "{text}"
+    );
+    assert!(
+        text.contains("rfcl_curriculum_leases_granted_total 42"),
+        "{text}"
+    );
+    assert!(
+        text.contains("rfcl_curriculum_reports_refused_total{reason=\"duplicate\"} 3"),
+        "{text}"
+    );
+    for line in [
+        "rfcl_curriculum_reports_refused_total{reason=\"over_time_limit\"} 4",
+        "rfcl_curriculum_reports_refused_total{reason=\"not_holder\"} 5",
+        "rfcl_curriculum_actors_forgotten_total 6",
+        "rfcl_curriculum_snapshot_failures_total 7",
+    ] {
+        assert!(text.contains(line), "{line} missing from {text}");
+    }
+    assert!(
+        text.contains("rfcl_curriculum_demo_solved{demo=\"1\"} 1"),
+        "{text}"
+    );
+    assert!(text.ends_with("# EOF\n"));
+}
+
+fn maze() -> MazeView {
+    let snapshot = |steps: u64, successes: u64| MazeSnapshot {
+        policy_version: steps / 100,
+        env_steps: steps,
+        success_rate: successes as f64 / 2.0,
+        cells: vec![
+            MazeCell {
+                row: 1,
+                col: 2,
+                episodes: 1,
+                successes: 1,
+            },
+            MazeCell {
+                row: 1,
+                col: 3,
+                episodes: 1,
+                successes: successes - 1,
+            },
+        ],
+    };
+    MazeView {
+        map: vec!["####".into(), "#G..".into(), "####".into()],
+        snapshots: vec![snapshot(5000, 1), snapshot(9000, 2)],
+        demo_paths: vec![vec![[3.0, 1.0], [2.0, 1.0], [1.0, 1.0]]],
+    }
+}
+
+#[test]
+fn the_maze_heatmap_has_a_cell_per_map_square_per_snapshot() {
+    let m = maze();
+    let svg = maze_heatmap_svg(&m);
+    assert!(svg.starts_with("<svg"), "{svg}");
+    // Background + 12 squares in each of the two panels.
+    assert!(svg.matches("<rect").count() >= 1 + 2 * 12, "{svg}");
+    assert!(
+        svg.contains("5000 steps: 50%") && svg.contains("9000 steps: 100%"),
+        "{svg}"
+    );
+    // The goal (red circle) in each panel and a demo path.
+    assert_eq!(svg.matches("<circle").count(), 2, "{svg}");
+    assert!(svg.contains("<polyline"), "{svg}");
+    let mut v = view();
+    v.maze = Some(m);
+    let html = render_html(&v, 2);
+    assert!(html.contains("id=\"maze-heatmap\""));
+    assert!(!html.contains("chart failed"));
+    // No heatmap section for other suites.
+    assert!(!render_html(&view(), 2).contains("maze-heatmap"));
+}
+
+#[test]
+fn empty_views_render() {
+    let html = render_html(&DashboardView::default(), 5);
+    assert!(html.contains("<svg"));
+    assert!(level_probabilities_svg(&[]).starts_with("<svg"));
+}

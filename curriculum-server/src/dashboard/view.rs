@@ -1,0 +1,164 @@
+//! The dashboard's view model: everything the page, `/api/state` and `/metrics` show, as plain
+//! serialisable data. Fields added after the first release default when absent, so the JSON of an
+//! older server still reads.
+use serde::{Deserialize, Serialize};
+
+/// Everything the dashboard shows; `/api/state` serves it as JSON.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct DashboardView {
+    pub run_name: String,
+    pub env_id: String,
+    pub stage: u32,
+    pub stage_epoch: u64,
+    /// The run is over: nothing more is handed out (the stop rule, or stage 1 under
+    /// `stage_1_only`).
+    #[serde(default)]
+    pub finished: bool,
+    /// Env steps reported by train episodes.
+    pub env_steps: u64,
+    pub stage_1_env_steps: Option<u64>,
+    pub episodes: u64,
+    pub episodes_per_s: f64,
+    pub open_leases: u64,
+    pub expired_leases: u64,
+    /// Simulator worker restarts over all actors and their respawns (a restarted worker replays
+    /// its episode, so nothing else shows it). Absent from older servers' JSON.
+    #[serde(default)]
+    pub sim_worker_restarts: u64,
+    pub refused_reports: RefusedReports,
+    /// Calls refused UNAUTHENTICATED (no run token or a wrong one) since the server started.
+    #[serde(default)]
+    pub unauthenticated_calls: u64,
+    /// Actor ids dropped from `actors` after `service.forget_actors_after_s` without a call.
+    #[serde(default)]
+    pub actors_forgotten: u64,
+    /// Snapshot writes that failed since the server started (each is logged; the server stops
+    /// after several failures in a row).
+    #[serde(default)]
+    pub snapshot_failures: u64,
+    pub solved_frac: f64,
+    pub demos: Vec<DemoBar>,
+    pub levels: Vec<LevelRow>,
+    pub actors: Vec<ActorRow>,
+    pub evals: Vec<EvalPoint>,
+    pub history: Vec<ProgressPoint>,
+    /// The PointMaze success heatmap (PointMaze runs only).
+    #[serde(default)]
+    pub maze: Option<MazeView>,
+}
+
+/// The PointMaze heatmap (the paper's figure): success per start cell over the run.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MazeView {
+    /// The layout, one string per row (`#` wall, `X` hazard wall, `G` goal, `.` open), as in
+    /// `rfcl_core::maze::MAP`.
+    pub map: Vec<String>,
+    /// Evals spread over the run, oldest first; the last is the latest complete eval.
+    pub snapshots: Vec<MazeSnapshot>,
+    /// Per demo, the point's `(x, y)` at every step (x = column, y = row).
+    pub demo_paths: Vec<Vec<[f32; 2]>>,
+}
+
+/// Eval success per start cell of one policy version.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MazeSnapshot {
+    pub policy_version: u64,
+    pub env_steps: u64,
+    pub success_rate: f64,
+    pub cells: Vec<MazeCell>,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MazeCell {
+    pub row: u32,
+    pub col: u32,
+    pub episodes: u64,
+    pub successes: u64,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RefusedReports {
+    pub duplicate: u64,
+    pub expired: u64,
+    pub unknown: u64,
+    pub epoch_mismatch: u64,
+    pub malformed: u64,
+    /// From an actor that does not hold the lease (refused PERMISSION_DENIED).
+    #[serde(default)]
+    pub not_holder: u64,
+    /// Episodes longer than their lease's time limit (refused INVALID_ARGUMENT).
+    #[serde(default)]
+    pub over_time_limit: u64,
+}
+
+impl RefusedReports {
+    /// Reports refused for any reason.
+    pub fn total(&self) -> u64 {
+        self.duplicate
+            + self.expired
+            + self.unknown
+            + self.epoch_mismatch
+            + self.malformed
+            + self.not_holder
+            + self.over_time_limit
+    }
+}
+
+/// One demo's reverse-curriculum progress (spec 2).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DemoBar {
+    pub demo: u32,
+    /// Current start step t_i.
+    pub t: u32,
+    /// States kept, S_i.
+    pub states: u32,
+    /// Fraction of successes in the demo's frontier FIFO.
+    pub frontier_success_rate: f64,
+    pub solved: bool,
+}
+
+/// One forward-curriculum level (spec 3).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LevelRow {
+    pub level: u32,
+    /// "seed 12" or "demo 3 start".
+    pub label: String,
+    pub score: f64,
+    pub staleness: u64,
+    pub probability: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ActorRow {
+    pub actor_id: u32,
+    pub seconds_since_seen: f64,
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub open_leases: u64,
+    /// Simulator worker restarts of this actor id over all its processes.
+    #[serde(default)]
+    pub sim_restarts: u64,
+}
+
+/// Eval outcomes of one policy version.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalPoint {
+    pub policy_version: u64,
+    pub env_steps: u64,
+    pub episodes: u64,
+    pub success_at_end: f64,
+    pub success_once: f64,
+    pub mean_return: f64,
+}
+
+/// A sample of progress over time, taken by the service every few seconds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ProgressPoint {
+    pub wall_s: f64,
+    pub env_steps: u64,
+    pub stage: u32,
+    /// Mean of t_i / (S_i - 1): 1 at the start of stage 1, 0 when every demo starts from its beginning.
+    pub start_step_frac_avg: f64,
+    pub solved_frac: f64,
+    pub train_success_rate: f64,
+}
