@@ -12,7 +12,7 @@
 //! |--------|-------|------------------|-----|
 //! | 0      | 4     | magic `RFCT`     | a sample of another format is refused, never misread |
 //! | 4      | 2     | format version 1 | |
-//! | 6      | 2     | zero             | |
+//! | 6      | 2     | zero (reserved)  | a frame that sets them is refused |
 //! | 8      | 4     | `actor_id`       | as `TransitionBatch.actor_id` |
 //! | 12     | 4     | `obs_dim`        | checked against the run's, as on gRPC |
 //! | 16     | 4     | `action_dim`     | |
@@ -26,9 +26,9 @@
 //!
 //! # Policy frame (learner → actors)
 //!
-//! Little-endian, 24 header bytes (`RFCP`, format version, zero, `version` u64,
-//! `learner_env_steps` u64), then the safetensors bytes of the actor network (`docs/POLICY.md`),
-//! the same bytes as `PolicyWeights.safetensors` on the gRPC path.
+//! Little-endian, 24 header bytes (`RFCP`, format version, zero (reserved, checked as above),
+//! `version` u64, `learner_env_steps` u64), then the safetensors bytes of the actor network
+//! (`docs/POLICY.md`), the same bytes as `PolicyWeights.safetensors` on the gRPC path.
 use thiserror::Error;
 
 const TRANSITION_MAGIC: [u8; 4] = *b"RFCT";
@@ -57,6 +57,10 @@ pub enum FrameError {
     },
     #[error("{kind} frame has format version {got}, this build reads version {FORMAT_VERSION}")]
     Version { kind: &'static str, got: u16 },
+    /// Bytes 6..8 are reserved and written as zero: a frame that sets them is of a format this
+    /// build does not know, so it is refused rather than misread.
+    #[error("{kind} frame has {got:#06x} in its reserved bytes 6..8, expected zero")]
+    Reserved { kind: &'static str, got: u16 },
 }
 
 /// The header of a transition frame (see the module docs).
@@ -169,6 +173,13 @@ fn check_header(
     if version != FORMAT_VERSION {
         return Err(FrameError::Version { kind, got: version });
     }
+    let reserved = u16::from_le_bytes([frame[6], frame[7]]);
+    if reserved != 0 {
+        return Err(FrameError::Reserved {
+            kind,
+            got: reserved,
+        });
+    }
     Ok(())
 }
 
@@ -235,5 +246,37 @@ mod tests {
                 got: 2
             }
         );
+    }
+
+    /// Found by the `shm_frame` fuzz target (fuzz/artifacts/shm_frame/): the reserved bytes were
+    /// not checked, so a frame of some other layout decoded as if they were zero.
+    #[test]
+    fn frames_with_reserved_bytes_set_are_refused() {
+        let mut frame = vec![0; TRANSITION_HEADER_BYTES];
+        TransitionHeader::default().encode(&mut frame);
+        frame[6] = 0xFF;
+        frame[7] = 0xFF;
+        let e = TransitionHeader::decode(&frame).unwrap_err();
+        assert_eq!(
+            e,
+            FrameError::Reserved {
+                kind: "transition",
+                got: 0xFFFF
+            }
+        );
+        assert_eq!(
+            e.to_string(),
+            "transition frame has 0xffff in its reserved bytes 6..8, expected zero"
+        );
+        let mut policy = vec![0; POLICY_HEADER_BYTES];
+        PolicyHeader::default().encode(&mut policy);
+        policy[7] = 1;
+        assert!(matches!(
+            PolicyHeader::decode(&policy),
+            Err(FrameError::Reserved {
+                kind: "policy",
+                got: 0x100
+            })
+        ));
     }
 }
