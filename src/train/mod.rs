@@ -42,7 +42,7 @@ use tonic::transport::Channel;
 
 use children::{describe, find_setpriv, Child, Launcher};
 use progress::{
-    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, Ending, EvalTracker,
+    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, RunShape, Ending, EvalTracker,
     LearnerCounters, RespawnLimiter, RolledBack, RunProgress, ServiceRestart, Summary,
 };
 
@@ -941,11 +941,18 @@ impl Session {
             Ok(ending) => (ending, None),
             Err(e) => (Ending::Failed, Some(e)),
         };
+        let cfg = &self.prep.cfg;
+        let shape = RunShape {
+            train_envs: u64::from(cfg.env.num_envs),
+            horizon: u64::from(cfg.env.max_episode_steps),
+            batch_records: u64::from(cfg.service.transition_batch),
+        };
         let mut summary = summarize(
             view,
             &self.evals,
             self.counters,
             &self.prep.progress,
+            shape,
             wall,
             ending,
         );

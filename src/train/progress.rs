@@ -299,7 +299,96 @@ pub struct Summary {
     pub transitions_lost_shm: u64,
     #[serde(default)]
     pub refused_batches: u64,
+    /// Why `env_steps` (the learner's) and `curriculum_env_steps` differ, and whether the counted
+    /// losses explain the difference.
+    #[serde(default)]
+    pub env_steps_accounting: StepAccounting,
     pub evals: Vec<CompleteEval>,
+}
+
+/// The two services count env steps independently: the learner the transition records it
+/// received, the curriculum server the lengths of the train episodes reported to it. They differ,
+/// and each difference has a counted cause:
+///
+/// * either has more by the episodes in flight when both were read: running, not yet reported
+///   (the learner has more), or reported before the learner stored their last records (the
+///   curriculum has more); at most one per train env, each at most `horizon` steps;
+/// * the learner has more by the episodes whose report never counted (expired leases, refused
+///   reports, reports lost when the curriculum server rolled back to its snapshot), each at most
+///   `horizon` steps;
+/// * the curriculum has more by the steps the learner lost when it rolled back to its
+///   checkpoint, and the records lost between shared-memory frames or in refused batches.
+///
+/// `explained` says whether the difference lies within those bounds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StepAccounting {
+    /// `env_steps - curriculum_env_steps`.
+    pub learner_minus_curriculum: i64,
+    /// Steps of episodes in flight when both counts were read: train envs × horizon, at most.
+    pub in_flight_at_most: u64,
+    /// Train episodes whose report the curriculum does not count: expired leases, refused reports
+    /// and reports rolled back by curriculum-server restarts.
+    pub unreported_episodes: u64,
+    /// Env steps the learner rolled back over all its restarts.
+    pub learner_rolled_back: u64,
+    /// Records lost between shared-memory frames, and batches refused whole.
+    pub lost_records: u64,
+    pub refused_batches: u64,
+    pub explained: bool,
+}
+
+impl StepAccounting {
+    /// Compares the two counts with the bounds [`UncountedSteps`] gives each side.
+    pub fn new(
+        learner_env_steps: u64,
+        curriculum_env_steps: u64,
+        counts: UncountedSteps,
+    ) -> Self {
+        let restarts = counts.restarts;
+        let learner_rolled_back = restarts
+            .iter()
+            .filter(|r| r.process == "learner")
+            .map(|r| r.rolled_back.env_steps)
+            .sum::<u64>();
+        let reports_rolled_back = restarts
+            .iter()
+            .filter(|r| r.process == "curriculum-server")
+            .map(|r| r.rolled_back.reports)
+            .sum::<u64>();
+        let unreported_episodes = counts.expired_leases + counts.refused_reports + reports_rolled_back;
+        let in_flight_at_most = counts.train_envs * counts.horizon;
+        let more_in_learner = in_flight_at_most + unreported_episodes * counts.horizon;
+        let more_in_curriculum = in_flight_at_most
+            + learner_rolled_back
+            + counts.lost_records
+            + counts.refused_batches * counts.batch_records;
+        let difference = learner_env_steps as i64 - curriculum_env_steps as i64;
+        Self {
+            learner_minus_curriculum: difference,
+            in_flight_at_most,
+            unreported_episodes,
+            learner_rolled_back,
+            lost_records: counts.lost_records,
+            refused_batches: counts.refused_batches,
+            explained: -(more_in_curriculum as i64) <= difference
+                && difference <= more_in_learner as i64,
+        }
+    }
+}
+
+/// What [`StepAccounting::new`] needs besides the two counts.
+#[derive(Debug, Clone, Copy)]
+pub struct UncountedSteps<'a> {
+    pub train_envs: u64,
+    /// The most steps one episode has.
+    pub horizon: u64,
+    /// The most records one refused batch had.
+    pub batch_records: u64,
+    pub expired_leases: u64,
+    pub refused_reports: u64,
+    pub lost_records: u64,
+    pub refused_batches: u64,
+    pub restarts: &'a [ServiceRestart],
 }
 
 /// The learner's counters as `rfcl train` last saw them.
@@ -315,15 +404,41 @@ pub struct LearnerCounters {
     pub refused_batches: u64,
 }
 
+/// What a run's summary needs from its config.
+#[derive(Debug, Clone, Copy)]
+pub struct RunShape {
+    /// Train envs over all actors.
+    pub train_envs: u64,
+    /// The longest a train episode can run.
+    pub horizon: u64,
+    /// The most records one transition batch carries.
+    pub batch_records: u64,
+}
+
 /// Builds the summary of a run from its trackers and the curriculum server's last state.
 pub fn summarize(
     view: &DashboardView,
     evals: &EvalTracker,
     learner: LearnerCounters,
     progress: &RunProgress,
+    shape: RunShape,
     wall_s: f64,
     ending: Ending,
 ) -> Summary {
+    let env_steps_accounting = StepAccounting::new(
+        learner.env_steps,
+        view.env_steps,
+        UncountedSteps {
+            train_envs: shape.train_envs,
+            horizon: shape.horizon,
+            batch_records: shape.batch_records,
+            expired_leases: view.expired_leases,
+            refused_reports: view.refused_reports.total(),
+            lost_records: learner.shm_lost_records,
+            refused_batches: learner.refused_batches,
+            restarts: &progress.restarts,
+        },
+    );
     let to_success = THRESHOLDS
         .iter()
         .map(|&threshold| {
@@ -365,6 +480,7 @@ pub fn summarize(
         transitions_grpc: learner.grpc_records,
         transitions_lost_shm: learner.shm_lost_records,
         refused_batches: learner.refused_batches,
+        env_steps_accounting,
         evals: evals.evals(),
     }
 }
@@ -582,7 +698,12 @@ mod tests {
             shm_lost_records: 7,
             refused_batches: 1,
         };
-        let s = summarize(&view, &t, learner, &progress, 60.0, Ending::Budget);
+        let shape = RunShape {
+            train_envs: 2,
+            horizon: 10,
+            batch_records: 64,
+        };
+        let s = summarize(&view, &t, learner, &progress, shape, 60.0, Ending::Budget);
         assert_eq!(s.stage_1_env_steps, Some(1500));
         assert_eq!((s.transitions_shm, s.transitions_grpc), (3000, 100));
         assert_eq!((s.transitions_lost_shm, s.refused_batches), (7, 1));
@@ -598,6 +719,47 @@ mod tests {
         assert_eq!(json["ending"], "budget");
         assert_eq!(json["sim_worker_restarts"], 2);
         assert_eq!(json["to_success"][1]["threshold"], 0.9);
+        // 3100 - 2900 = 200 more in the learner; at most 2 × 10 in flight and (4 expired + 6
+        // refused) × 10 unreported: 120 explained, so 200 is not.
+        let a = s.env_steps_accounting;
+        assert_eq!((a.learner_minus_curriculum, a.in_flight_at_most), (200, 20));
+        assert_eq!(a.unreported_episodes, 10);
+        assert!(!a.explained);
+        assert_eq!(json["env_steps_accounting"]["explained"], false);
+    }
+
+    #[test]
+    fn step_accounting_bounds_each_side_by_its_counted_causes() {
+        let restart = |process: &str, env_steps, reports| ServiceRestart {
+            process: process.into(),
+            wall_s: 1.0,
+            cause: "killed by signal 9".into(),
+            rolled_back: RolledBack {
+                env_steps,
+                updates: 0,
+                reports,
+            },
+        };
+        let restarts = [restart("learner", 500, 0), restart("curriculum-server", 0, 3)];
+        let counts = UncountedSteps {
+            train_envs: 8,
+            horizon: 50,
+            batch_records: 64,
+            expired_leases: 2,
+            refused_reports: 1,
+            lost_records: 10,
+            refused_batches: 1,
+            restarts: &restarts,
+        };
+        // Learner side: 8 × 50 in flight + (2 + 1 + 3) × 50 unreported = 700.
+        assert!(StepAccounting::new(10_700, 10_000, counts).explained);
+        assert!(!StepAccounting::new(10_701, 10_000, counts).explained);
+        // Curriculum side: 400 in flight + 500 rolled back + 10 lost + 1 × 64 refused = 974.
+        let a = StepAccounting::new(10_000, 10_974, counts);
+        assert!(a.explained);
+        assert_eq!((a.learner_minus_curriculum, a.learner_rolled_back), (-974, 500));
+        assert_eq!(a.unreported_episodes, 6);
+        assert!(!StepAccounting::new(10_000, 10_975, counts).explained);
     }
 
     #[test]

@@ -341,6 +341,10 @@ pub fn assert_reached(summary: &Value, bar: f64) {
         curriculum_steps <= env_steps + 8 * 300 && curriculum_steps * 10 >= env_steps * 9,
         "curriculum {curriculum_steps} vs learner {env_steps} env steps"
     );
+    assert_eq!(
+        summary["env_steps_accounting"]["explained"], true,
+        "the counted losses do not explain the difference: {summary:#}"
+    );
     // The first eval at or above each threshold the run passed, by env steps, within the run.
     let mut previous = 0;
     for m in summary["to_success"].as_array().unwrap() {
