@@ -467,6 +467,34 @@ async fn a_train_actor_explores_then_follows_the_policy_and_reports_every_episod
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_with_its_streams_open_stops_the_actor_in_seconds() {
+    let dir = tempfile::tempdir().unwrap();
+    let (config, demos, cfg) = write_run(dir.path(), "");
+    let server = Server::start(&config, &demos, &dir.path().join("run"));
+    let learner = LearnerHandle::start(&cfg, &server.grpc).await;
+    let actor = start_actor(&learner.addr, &["--envs", "2", "--id", "5"]);
+    // Streaming transitions, and holding a policy from its WatchPolicy stream.
+    assert!(wait_until(Duration::from_secs(20), || learner.transitions() >= 64).await);
+    learner.publish(1, 100);
+    let has_policy = wait_until(Duration::from_secs(10), || {
+        let seen = learner.seen.lock().unwrap();
+        seen.transitions.iter().any(|t| t.policy_version == 1)
+    })
+    .await;
+    assert!(has_policy);
+
+    let killed = Command::new("kill")
+        .args(["-TERM", &actor.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let out = exit_within(actor, Duration::from_secs(10));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("stopped"), "{stderr}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_eval_actor_evaluates_each_eval_point_with_the_deterministic_policy() {
     let dir = tempfile::tempdir().unwrap();
     let (config, demos, cfg) = write_run(dir.path(), "  num_eval_actors: 1\n");
