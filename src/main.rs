@@ -8,6 +8,7 @@
 
 mod bench_e2e;
 mod bench_faults;
+mod demo_check;
 mod demos_sim;
 mod demos_suites;
 mod eval;
@@ -141,6 +142,9 @@ enum DemosCommand {
         /// ManiSkill-format trajectory file (.h5, with its .json sidecar).
         file: PathBuf,
     },
+    /// `inspect` in this process, without the child that guards against libhdf5 crashing.
+    #[command(hide = true)]
+    Load { file: PathBuf },
     /// Generate successful demos with their simulator states.
     Generate {
         /// Env: pointmaze, a ManiSkill3 env id such as PickCube-v1, or metaworld/<task> such as
@@ -246,6 +250,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Demos {
             command: DemosCommand::Inspect { file },
+        } => {
+            let status = demo_check::inspect(&file)?;
+            Ok(ExitCode::from(status.code().unwrap_or(1).clamp(0, 255) as u8))
+        }
+        Command::Demos {
+            command: DemosCommand::Load { file },
         } => {
             let demos = rfcl_core::demo::DemoSet::load(&file)?;
             print!("{}", demos.summary());

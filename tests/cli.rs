@@ -136,6 +136,50 @@ fn a_corrupt_demo_file_is_one_clear_error_line() {
     assert!(error_lines(&out)[0].contains("missing.h5"));
 }
 
+/// A damaged file that crashes libhdf5 itself (a fuzzing reproducer): `rfcl` reads demos in a
+/// child first, so the user gets one error line naming the file instead of a segmentation fault.
+#[test]
+fn a_demo_file_that_crashes_the_hdf5_library_is_one_clear_error_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("damaged.h5");
+    let reproducers = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/artifacts/demo_hdf5/upstream");
+    let crash = std::fs::read_dir(&reproducers)
+        .unwrap()
+        .flatten()
+        .find(|e| e.file_name().to_string_lossy().starts_with("crash-"))
+        .expect("a committed reproducer");
+    std::fs::copy(crash.path(), &file).unwrap();
+    let out = rfcl(&["demos", "inspect", file.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let lines = error_lines(&out);
+    assert_eq!(lines.len(), 1, "{lines:?}");
+    assert!(
+        lines[0].contains("damaged.h5") && lines[0].contains("crashed the HDF5 library"),
+        "{}",
+        lines[0]
+    );
+    // `rfcl train` refuses it before any service starts.
+    let out = rfcl(&[
+        "train",
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("configs/pointmaze_test.yml")
+            .to_str()
+            .unwrap(),
+        &format!("train.dataset_path={}", file.display()),
+        "--run-dir",
+        dir.path().join("run").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let lines = error_lines(&out);
+    assert!(
+        lines.len() == 1
+            && lines[0].contains("train.dataset_path")
+            && lines[0].contains("crashed the HDF5 library"),
+        "{lines:?}"
+    );
+    assert!(!dir.path().join("run").join("processes.json").exists());
+}
+
 #[test]
 fn generated_pointmaze_demos_inspect_cleanly() {
     let dir = tempfile::tempdir().unwrap();

@@ -191,6 +191,8 @@ fn check_runnable(cfg: &RunConfig) -> Result<()> {
     if !Path::new(demos).is_file() {
         bail!("train.dataset_path: demo file {demos} not found");
     }
+    crate::demo_check::refuse_if_it_crashes_the_reader(Path::new(demos))
+        .context("train.dataset_path")?;
     rfcl_actor::suite::check_supported(&cfg.env)?;
     let s = &cfg.service;
     if s.num_actors == 0 {
