@@ -87,7 +87,7 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
             .action_scale
     } else if cfg.train.data_action_scale.is_some() {
         bail!(
-            "the run sets train.data_action_scale (spec 6.4) but {} is missing: it records the \
+            "the run sets train.data_action_scale (docs/ALGORITHM.md 6.4) but {} is missing: it records the \
              action scale the policy acts with (the learner exports it with policy.safetensors)",
             description.display()
         );

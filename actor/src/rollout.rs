@@ -55,7 +55,7 @@ pub enum RolloutError {
     NoSuchEnv { env: usize, envs: usize },
     #[error("the policy returned {got} action components, the env takes {expected}")]
     PolicyActionDim { expected: usize, got: usize },
-    #[error("the action scale (spec 6.4) does not fit env {env}: {problem}")]
+    #[error("the action scale (docs/ALGORITHM.md 6.4) does not fit env {env}: {problem}")]
     ActionScale { env: usize, problem: String },
 }
 

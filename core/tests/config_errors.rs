@@ -209,7 +209,7 @@ fn a_rule_broken_by_defaults_names_no_file() {
     let (_, message, _) = error_of("", &["sac.actor_update_freq=3"]);
     assert_eq!(
         message,
-        "sac.grad_updates_per_step: must be a multiple of sac.actor_update_freq (3) (spec 5.2), got 16"
+        "sac.grad_updates_per_step: must be a multiple of sac.actor_update_freq (3) (docs/ALGORITHM.md 5.2), got 16"
     );
 }
 

@@ -274,7 +274,7 @@ fn rules_between_options_are_enforced() {
                 c.sac.grad_updates_per_step = 70;
             },
             "sac.grad_updates_per_step",
-            "must be a multiple of sac.actor_update_freq (20) (spec 5.2), got 70",
+            "must be a multiple of sac.actor_update_freq (20) (docs/ALGORITHM.md 5.2), got 70",
         ),
         (
             |c| {
@@ -296,7 +296,7 @@ fn rules_between_options_are_enforced() {
                 c.train.train_on_demo_actions = false;
             },
             "train.data_action_scale",
-            "cannot be combined with train.train_on_demo_actions: false (spec 6.3)",
+            "cannot be combined with train.train_on_demo_actions: false (docs/ALGORITHM.md 6.3)",
         ),
         (
             |c| {
@@ -309,7 +309,7 @@ fn rules_between_options_are_enforced() {
         (
             |c| c.train.load_as_online_buffer = true,
             "train.load_as_online_buffer",
-            "spec 4.2",
+            "docs/ALGORITHM.md 4.2",
         ),
         (
             |c| c.service.num_actors = 9,

@@ -222,7 +222,7 @@ impl Collector for LearnerMetrics {
         counter(
             e,
             "iterations",
-            "Training iterations (spec 5.2)",
+            "Training iterations (docs/ALGORITHM.md 5.2)",
             s.iterations,
         )?;
         gauge(

@@ -66,7 +66,7 @@ impl RunConfig {
         ensure(eval.seed_offset >= levels, "eval_env.seed_offset", || {
             format!(
                 "must be >= forward.num_seeds ({levels}) so that eval seeds are not curriculum levels \
-                 (spec 3.1, 5.7), got {}",
+                 (docs/ALGORITHM.md 3.1, 5.7), got {}",
                 eval.seed_offset
             )
         })
@@ -77,7 +77,7 @@ impl RunConfig {
         at_least("sac.batch_size", sac.batch_size, 2)?;
         ensure(sac.batch_size.is_multiple_of(2), "sac.batch_size", || {
             format!(
-                "must be even: every minibatch is half online, half offline (spec 5.2), got {}",
+                "must be even: every minibatch is half online, half offline (docs/ALGORITHM.md 5.2), got {}",
                 sac.batch_size
             )
         })?;
@@ -87,7 +87,7 @@ impl RunConfig {
             "sac.replay_buffer_capacity",
             || {
                 format!(
-                "must be >= env.num_envs ({envs}): the buffer is a ring per env (spec 5.5), got {}",
+                "must be >= env.num_envs ({envs}): the buffer is a ring per env (docs/ALGORITHM.md 5.5), got {}",
                 sac.replay_buffer_capacity
             )
             },
@@ -101,7 +101,7 @@ impl RunConfig {
             "sac.grad_updates_per_step",
             || {
                 format!(
-                    "must be a multiple of sac.actor_update_freq ({}) (spec 5.2), got {}",
+                    "must be a multiple of sac.actor_update_freq ({}) (docs/ALGORITHM.md 5.2), got {}",
                     sac.actor_update_freq, sac.grad_updates_per_step
                 )
             },
@@ -111,7 +111,7 @@ impl RunConfig {
         ensure(sac.num_min_qs <= sac.target_pool, "sac.num_min_qs", || {
             format!(
                 "must be <= sac.target_pool ({}): the target draws that many members without \
-                 replacement (spec 5.3), got {}",
+                 replacement (docs/ALGORITHM.md 5.3), got {}",
                 sac.target_pool, sac.num_min_qs
             )
         })?;
@@ -120,7 +120,7 @@ impl RunConfig {
             "sac.target_pool",
             || {
                 format!(
-                "must be <= sac.critic_ensemble ({}): the pool is members 0..target_pool-1 (spec 5.1), \
+                "must be <= sac.critic_ensemble ({}): the pool is members 0..target_pool-1 (docs/ALGORITHM.md 5.1), \
                  got {}",
                 sac.critic_ensemble, sac.target_pool
             )
@@ -192,7 +192,7 @@ impl RunConfig {
             ensure(
                 train.train_on_demo_actions,
                 "train.data_action_scale",
-                || "cannot be combined with train.train_on_demo_actions: false (spec 6.3)".into(),
+                || "cannot be combined with train.train_on_demo_actions: false (docs/ALGORITHM.md 6.3)".into(),
             )?;
         }
         ensure(
@@ -205,7 +205,7 @@ impl RunConfig {
             "train.load_as_online_buffer",
             || {
                 "cannot be combined with train.load_as_offline_buffer: true; the stage-1 buffer becomes \
-                 either stage 2's offline or its online buffer (spec 4.2)"
+                 either stage 2's offline or its online buffer (docs/ALGORITHM.md 4.2)"
                     .into()
             },
         )
@@ -269,7 +269,7 @@ impl ReverseConfig {
         }
         let sum: f64 = probs.iter().sum();
         ensure((sum - 1.0).abs() <= 1e-9, "reverse.geometric_probs", || {
-            format!("must sum to 1 (spec 2.3), got {probs:?} summing to {sum}")
+            format!("must sum to 1 (docs/ALGORITHM.md 2.3), got {probs:?} summing to {sum}")
         })?;
         at_least("reverse.reverse_step_size", self.reverse_step_size, 1)?;
         at_least("reverse.per_demo_buffer_size", self.per_demo_buffer_size, 1)?;

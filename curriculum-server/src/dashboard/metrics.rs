@@ -92,7 +92,7 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
     gauge(
         &mut r,
         "solved_fraction",
-        "Fraction of demos reverse-solved (spec 2.7)",
+        "Fraction of demos reverse-solved (docs/ALGORITHM.md 2.7)",
         view.solved_frac,
     );
     let refused = Family::<Vec<(String, String)>, Counter>::default();

@@ -72,7 +72,7 @@ pub async fn run(
         .with_context(|| format!("the run description sent by the {}", learner.peer))?;
     match (cfg.train.data_action_scale, &action_scale) {
         (Some(_), None) => bail!(
-            "the run sets train.data_action_scale (spec 6.4) but the {} sent no \
+            "the run sets train.data_action_scale (docs/ALGORITHM.md 6.4) but the {} sent no \
              RunInfo.action_scale (a learner older than this actor?)",
             learner.peer
         ),
