@@ -8,57 +8,22 @@ mod config_overrides;
 #[path = "../../fuzz/harness/demo_hdf5.rs"]
 mod demo_hdf5;
 
-/// The files of `fuzz/<kind>/<target>/`, sorted; none when the directory does not exist.
-fn inputs(kind: &str, target: &str) -> Vec<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../fuzz")
-        .join(kind)
-        .join(target);
-    let mut files: Vec<PathBuf> = match std::fs::read_dir(&dir) {
-        Ok(entries) => entries
-            .map(|e| e.unwrap().path())
-            .filter(|p| p.is_file())
-            .collect(),
-        Err(_) => Vec::new(),
-    };
-    files.sort();
-    files
-}
+#[path = "../../fuzz/harness/replay.rs"]
+mod replay;
 
-/// Runs every input through `run`; fails naming each input that panicked or whose rejection
-/// `names_it` finds vague. Returns the number of rejections.
-fn replay(files: &[PathBuf], run: fn(&[u8]) -> Vec<String>, names_it: fn(&str) -> bool) -> usize {
-    let mut failures = Vec::new();
-    let mut rejections = 0;
-    for file in files {
-        let data = std::fs::read(file).unwrap();
-        match std::panic::catch_unwind(|| run(&data)) {
-            Ok(refused) => {
-                rejections += refused.len();
-                for r in refused {
-                    if r.contains('\n') || !names_it(&r) {
-                        failures.push(format!("{}: vague rejection {r:?}", file.display()));
-                    }
-                }
-            }
-            Err(_) => failures.push(format!("{}: panicked", file.display())),
-        }
-    }
-    assert!(failures.is_empty(), "{failures:#?}");
-    rejections
+use replay::replay;
+
+fn inputs(kind: &str, target: &str) -> Vec<PathBuf> {
+    replay::inputs(env!("CARGO_MANIFEST_DIR"), kind, target)
 }
 
 fn non_empty(target: &str, files: &[PathBuf]) {
-    assert!(
-        files.len() >= 3,
-        "fuzz/corpus/{target}/ has {} files: the replay would prove nothing",
-        files.len()
-    );
+    replay::non_empty(target, files, 3);
 }
 
 /// A demo error names the file it is about.
 fn names_the_demo_file(r: &str) -> bool {
-    r.contains("demo.h5: ") && r.len() > "demo.h5: ".len() + 8
+    !r.contains('\n') && r.contains("demo.h5: ") && r.len() > "demo.h5: ".len() + 8
 }
 
 /// A config error names the layer (the file or the override) or the dotted key it is about.
@@ -69,10 +34,11 @@ fn names_the_layer_or_key(r: &str) -> bool {
                 .chars()
                 .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_' || c == '.')
     });
-    r.contains("run.yml")
-        || r.starts_with("command-line override '")
-        || r.starts_with("base_config cycle: ")
-        || dotted_key
+    !r.contains('\n')
+        && (r.contains("run.yml")
+            || r.starts_with("command-line override '")
+            || r.starts_with("base_config cycle: ")
+            || dotted_key)
 }
 
 #[test]

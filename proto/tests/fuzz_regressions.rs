@@ -8,21 +8,11 @@ mod harness;
 
 const TARGET: &str = "rpc_decode";
 
-/// The files of `fuzz/<kind>/<TARGET>/`, sorted; none when the directory does not exist.
+#[path = "../../fuzz/harness/replay.rs"]
+mod replay;
+
 fn inputs(kind: &str) -> Vec<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../fuzz")
-        .join(kind)
-        .join(TARGET);
-    let mut files: Vec<PathBuf> = match std::fs::read_dir(&dir) {
-        Ok(entries) => entries
-            .map(|e| e.unwrap().path())
-            .filter(|p| p.is_file())
-            .collect(),
-        Err(_) => Vec::new(),
-    };
-    files.sort();
-    files
+    replay::inputs(env!("CARGO_MANIFEST_DIR"), kind, TARGET)
 }
 
 /// Whether a rejection says which message was refused and why: `convert`'s errors name
@@ -49,36 +39,14 @@ fn names_what_was_wrong(r: &str) -> bool {
             || (message == "authorization token" && why.contains("run token")))
 }
 
-/// Runs every input; fails naming each input that panicked or was refused without saying why.
 fn replay(files: &[PathBuf]) -> usize {
-    let mut failures = Vec::new();
-    let mut rejections = 0;
-    for file in files {
-        let data = std::fs::read(file).unwrap();
-        match std::panic::catch_unwind(|| harness::run(&data)) {
-            Ok(refused) => {
-                rejections += refused.len();
-                for r in refused {
-                    if !names_what_was_wrong(&r) {
-                        failures.push(format!("{}: vague rejection {r:?}", file.display()));
-                    }
-                }
-            }
-            Err(_) => failures.push(format!("{}: panicked", file.display())),
-        }
-    }
-    assert!(failures.is_empty(), "{failures:#?}");
-    rejections
+    replay::replay(files, harness::run, names_what_was_wrong)
 }
 
 #[test]
 fn rpc_decode_corpus_replays_without_panics() {
     let corpus = inputs("corpus");
-    assert!(
-        corpus.len() >= 5,
-        "fuzz/corpus/{TARGET}/ has {} files: the replay would prove nothing",
-        corpus.len()
-    );
+    replay::non_empty(TARGET, &corpus, 5);
     let rejections = replay(&corpus);
     assert!(rejections > 0, "the corpus exercises no rejection at all");
 }

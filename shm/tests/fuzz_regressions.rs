@@ -8,51 +8,26 @@ mod harness;
 
 const TARGET: &str = "shm_frame";
 
-/// The files of `fuzz/<kind>/<TARGET>/`, sorted; none when the directory does not exist.
+#[path = "../../fuzz/harness/replay.rs"]
+mod replay;
+
 fn inputs(kind: &str) -> Vec<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../fuzz")
-        .join(kind)
-        .join(TARGET);
-    let mut files: Vec<PathBuf> = match std::fs::read_dir(&dir) {
-        Ok(entries) => entries
-            .map(|e| e.unwrap().path())
-            .filter(|p| p.is_file())
-            .collect(),
-        Err(_) => Vec::new(),
-    };
-    files.sort();
-    files
+    replay::inputs(env!("CARGO_MANIFEST_DIR"), kind, TARGET)
 }
 
-/// Runs every input; fails naming each input that panicked or was refused without saying why.
+/// A frame rejection says which kind of frame it refused.
+fn names_the_frame(r: &str) -> bool {
+    r.contains("frame") && (r.contains("transition") || r.contains("policy"))
+}
+
 fn replay(files: &[PathBuf]) {
-    let mut failures = Vec::new();
-    for file in files {
-        let data = std::fs::read(file).unwrap();
-        match std::panic::catch_unwind(|| harness::run(&data)) {
-            Ok(rejections) => {
-                for r in rejections {
-                    if !(r.contains("frame") && (r.contains("transition") || r.contains("policy")))
-                    {
-                        failures.push(format!("{}: vague rejection {r:?}", file.display()));
-                    }
-                }
-            }
-            Err(_) => failures.push(format!("{}: panicked", file.display())),
-        }
-    }
-    assert!(failures.is_empty(), "{failures:#?}");
+    replay::replay(files, harness::run, names_the_frame);
 }
 
 #[test]
 fn shm_frame_corpus_replays_without_panics() {
     let corpus = inputs("corpus");
-    assert!(
-        corpus.len() >= 3,
-        "fuzz/corpus/{TARGET}/ has {} files: the replay would prove nothing",
-        corpus.len()
-    );
+    replay::non_empty(TARGET, &corpus, 3);
     replay(&corpus);
 }
 
