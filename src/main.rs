@@ -252,7 +252,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             command: DemosCommand::Inspect { file },
         } => {
             let status = demo_check::inspect(&file)?;
-            Ok(ExitCode::from(status.code().unwrap_or(1).clamp(0, 255) as u8))
+            Ok(ExitCode::from(
+                status.code().unwrap_or(1).clamp(0, 255) as u8
+            ))
         }
         Command::Demos {
             command: DemosCommand::Load { file },

@@ -142,7 +142,8 @@ fn a_corrupt_demo_file_is_one_clear_error_line() {
 fn a_demo_file_that_crashes_the_hdf5_library_is_one_clear_error_line() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("damaged.h5");
-    let reproducers = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/artifacts/demo_hdf5/upstream");
+    let reproducers =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/artifacts/demo_hdf5/upstream");
     let crash = std::fs::read_dir(&reproducers)
         .unwrap()
         .flatten()

@@ -31,11 +31,21 @@ fn allowed() -> BTreeMap<&'static str, BTreeSet<&'static str>> {
 fn workspace_dependencies() -> BTreeMap<String, BTreeSet<(String, String)>> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
-        .args(["metadata", "--format-version", "1", "--no-deps", "--offline"])
+        .args([
+            "metadata",
+            "--format-version",
+            "1",
+            "--no-deps",
+            "--offline",
+        ])
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .output()
         .expect("run cargo metadata");
-    assert!(out.status.success(), "cargo metadata: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "cargo metadata: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let meta: serde_json::Value = serde_json::from_slice(&out.stdout).expect("cargo metadata JSON");
     let members: BTreeSet<String> = meta["packages"]
         .as_array()
@@ -69,7 +79,10 @@ fn services_meet_only_over_the_wire() {
     let graph = workspace_dependencies();
     let names: BTreeSet<&str> = graph.keys().map(String::as_str).collect();
     let expected: BTreeSet<&str> = allowed.keys().copied().collect();
-    assert_eq!(names, expected, "workspace crates changed: say in this test and docs/DESIGN.md where the new one sits");
+    assert_eq!(
+        names, expected,
+        "workspace crates changed: say in this test and docs/DESIGN.md where the new one sits"
+    );
     let mut breaches = Vec::new();
     for (krate, deps) in &graph {
         for (dep, kind) in deps {
@@ -78,9 +91,18 @@ fn services_meet_only_over_the_wire() {
             }
         }
     }
-    assert!(breaches.is_empty(), "dependencies outside the rule in docs/DESIGN.md: {breaches:?}");
+    assert!(
+        breaches.is_empty(),
+        "dependencies outside the rule in docs/DESIGN.md: {breaches:?}"
+    );
     for service in SERVICES {
-        let others: Vec<_> = graph[service].iter().filter(|(d, _)| SERVICES.contains(&d.as_str())).collect();
-        assert!(others.is_empty(), "{service} depends on another service: {others:?}");
+        let others: Vec<_> = graph[service]
+            .iter()
+            .filter(|(d, _)| SERVICES.contains(&d.as_str()))
+            .collect();
+        assert!(
+            others.is_empty(),
+            "{service} depends on another service: {others:?}"
+        );
     }
 }

@@ -18,7 +18,11 @@ fn map_is_12_by_12_with_a_wall_border() {
 #[test]
 fn there_are_34_start_cells_in_row_major_order() {
     let cells = pointmaze::start_cells();
-    assert_eq!(cells.len(), 34, "docs/ALGORITHM.md 7.5: num_seeds 34, one seed per cell");
+    assert_eq!(
+        cells.len(),
+        34,
+        "docs/ALGORITHM.md 7.5: num_seeds 34, one seed per cell"
+    );
     assert!(cells.windows(2).all(|w| w[0] < w[1]), "row-major order");
     assert!(!cells.contains(&maze().goal_cell()));
     assert!(cells.iter().all(|&c| !maze().is_wall(c)));

@@ -42,8 +42,8 @@ use tonic::transport::Channel;
 
 use children::{describe, find_setpriv, Child, Launcher};
 use progress::{
-    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, RunShape, Ending, EvalTracker,
-    LearnerCounters, RespawnLimiter, RolledBack, RunProgress, ServiceRestart, Summary,
+    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, Ending, EvalTracker,
+    LearnerCounters, RespawnLimiter, RolledBack, RunProgress, RunShape, ServiceRestart, Summary,
 };
 
 /// How long a service may take to print its ready line (the learner loads demos and may restore

@@ -339,11 +339,7 @@ pub struct StepAccounting {
 
 impl StepAccounting {
     /// Compares the two counts with the bounds [`UncountedSteps`] gives each side.
-    pub fn new(
-        learner_env_steps: u64,
-        curriculum_env_steps: u64,
-        counts: UncountedSteps,
-    ) -> Self {
+    pub fn new(learner_env_steps: u64, curriculum_env_steps: u64, counts: UncountedSteps) -> Self {
         let restarts = counts.restarts;
         let learner_rolled_back = restarts
             .iter()
@@ -355,7 +351,8 @@ impl StepAccounting {
             .filter(|r| r.process == "curriculum-server")
             .map(|r| r.rolled_back.reports)
             .sum::<u64>();
-        let unreported_episodes = counts.expired_leases + counts.refused_reports + reports_rolled_back;
+        let unreported_episodes =
+            counts.expired_leases + counts.refused_reports + reports_rolled_back;
         let in_flight_at_most = counts.train_envs * counts.horizon;
         let more_in_learner = in_flight_at_most + unreported_episodes * counts.horizon;
         let more_in_curriculum = in_flight_at_most
@@ -740,7 +737,10 @@ mod tests {
                 reports,
             },
         };
-        let restarts = [restart("learner", 500, 0), restart("curriculum-server", 0, 3)];
+        let restarts = [
+            restart("learner", 500, 0),
+            restart("curriculum-server", 0, 3),
+        ];
         let counts = UncountedSteps {
             train_envs: 8,
             horizon: 50,
@@ -757,7 +757,10 @@ mod tests {
         // Curriculum side: 400 in flight + 500 rolled back + 10 lost + 1 × 64 refused = 974.
         let a = StepAccounting::new(10_000, 10_974, counts);
         assert!(a.explained);
-        assert_eq!((a.learner_minus_curriculum, a.learner_rolled_back), (-974, 500));
+        assert_eq!(
+            (a.learner_minus_curriculum, a.learner_rolled_back),
+            (-974, 500)
+        );
         assert_eq!(a.unreported_episodes, 6);
         assert!(!StepAccounting::new(10_000, 10_975, counts).explained);
     }

@@ -192,7 +192,9 @@ impl RunConfig {
             ensure(
                 train.train_on_demo_actions,
                 "train.data_action_scale",
-                || "cannot be combined with train.train_on_demo_actions: false (docs/ALGORITHM.md 6.3)".into(),
+                || {
+                    "cannot be combined with train.train_on_demo_actions: false (docs/ALGORITHM.md 6.3)".into()
+                },
             )?;
         }
         ensure(
