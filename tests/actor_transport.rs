@@ -6,57 +6,33 @@
 //! memory is a clear error.
 mod train_support;
 
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
+use rfcl_testkit::child::{self, ChildGuard};
 use train_support::*;
 
-fn binary(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_BIN_EXE_rfcl")).with_file_name(name)
-}
-
-/// A child that is killed when dropped.
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// Starts `name ARGS` and returns it with the value of `field=` on its ready line.
-fn start_service(name: &str, args: &[&str], log: &Path, field: &str) -> (Proc, String) {
-    let mut child = Command::new(binary(name))
-        .args(args)
+/// Starts service `program ARGS` (a binary rfcl-testkit found or built) and returns it with the
+/// value of `field=` on its ready line.
+fn start_service(
+    name: &str,
+    program: std::path::PathBuf,
+    args: &[&str],
+    field: &str,
+) -> (ChildGuard, String) {
+    let mut cmd = Command::new(program);
+    cmd.args(args)
         .env("RFCL_TOKEN", TEST_TOKEN)
-        .env("OMP_WAIT_POLICY", "PASSIVE")
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(log).unwrap())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let value = line
-        .split_whitespace()
-        .find_map(|w| w.strip_prefix(&format!("{field}=")))
-        .unwrap_or_else(|| {
-            panic!(
-                "{name} did not start ({line:?}):\n{}",
-                std::fs::read_to_string(log).unwrap_or_default()
-            )
-        })
-        .to_string();
-    (Proc(child), value)
+        .env("OMP_WAIT_POLICY", "PASSIVE");
+    let (child, ready) = child::start_service(name, &mut cmd);
+    let value = ready.expect_field(field).to_string();
+    (child, value)
 }
 
 struct Services {
-    _curriculum: Proc,
-    _learner: Proc,
+    _curriculum: ChildGuard,
+    _learner: ChildGuard,
     processes: serde_json::Value,
     dir: tempfile::TempDir,
 }
@@ -74,8 +50,8 @@ fn start_services(learner_extra: &[&str]) -> Services {
     );
     let (curriculum, cur_addr) = start_service(
         "curriculum-server",
+        rfcl_testkit::binaries::curriculum_server(),
         &["--config", &config, "--demos", &demos, "--run-dir", &run],
-        &dir.path().join("curriculum.log"),
         "grpc",
     );
     let cur_url = format!("http://{cur_addr}");
@@ -92,7 +68,8 @@ fn start_services(learner_extra: &[&str]) -> Services {
         "1",
     ];
     args.extend_from_slice(learner_extra);
-    let (learner, addr) = start_service("learner", &args, &dir.path().join("learner.log"), "grpc");
+    let (learner, addr) =
+        start_service("learner", rfcl_testkit::binaries::learner(), &args, "grpc");
     let processes = serde_json::json!({
         "learner": format!("http://{addr}"),
         "curriculum": cur_url,
@@ -105,18 +82,15 @@ fn start_services(learner_extra: &[&str]) -> Services {
     }
 }
 
-fn start_actor(s: &Services, transport: &str, log: &Path) -> Proc {
-    Proc(
-        Command::new(binary("actor"))
-            .args(["--connect", s.processes["learner"].as_str().unwrap()])
-            .args(["--envs", "2", "--id", "0", "--retry-for", "10"])
-            .args(["--transport", transport])
-            .env("RFCL_TOKEN", TEST_TOKEN)
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(log).unwrap())
-            .spawn()
-            .unwrap(),
-    )
+fn start_actor(s: &Services, transport: &str, log: &Path) -> ChildGuard {
+    let mut cmd = Command::new(rfcl_testkit::binaries::actor());
+    cmd.args(["--connect", s.processes["learner"].as_str().unwrap()])
+        .args(["--envs", "2", "--id", "0", "--retry-for", "10"])
+        .args(["--transport", transport])
+        .env("RFCL_TOKEN", TEST_TOKEN)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(log).unwrap());
+    ChildGuard::new("actor", child::spawn_locked(&mut cmd).unwrap())
 }
 
 /// Runs one actor with `--transport transport` until the learner has taken 1,000 transitions
@@ -136,9 +110,9 @@ fn run_actor(transport: &str) -> (rfcl_proto::v1::HealthReply, String) {
             std::fs::read_to_string(&log).unwrap_or_default()
         )
     });
-    assert!(actor.0.try_wait().unwrap().is_none(), "the actor is alive");
-    signal(actor.0.id(), rustix::process::Signal::TERM);
-    let status = actor.0.wait().unwrap();
+    assert!(actor.try_wait().unwrap().is_none(), "the actor is alive");
+    actor.signal(child::Signal::TERM);
+    let status = actor.wait().unwrap();
     assert!(status.success(), "actor exit {status}");
     (health, std::fs::read_to_string(&log).unwrap())
 }
@@ -166,7 +140,7 @@ fn forcing_shared_memory_without_it_is_a_clear_error() {
     let s = start_services(&["--no-shm"]);
     let log = s.dir.path().join("actor.log");
     let mut actor = start_actor(&s, "shm", &log);
-    let status = actor.0.wait().unwrap();
+    let status = actor.wait().unwrap();
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(!status.success());
     assert!(

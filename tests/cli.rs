@@ -141,15 +141,7 @@ fn a_corrupt_demo_file_is_one_clear_error_line() {
 #[test]
 fn a_demo_file_that_crashes_the_hdf5_library_is_one_clear_error_line() {
     let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("damaged.h5");
-    let reproducers =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/artifacts/demo_hdf5/upstream");
-    let crash = std::fs::read_dir(&reproducers)
-        .unwrap()
-        .flatten()
-        .find(|e| e.file_name().to_string_lossy().starts_with("crash-"))
-        .expect("a committed reproducer");
-    std::fs::copy(crash.path(), &file).unwrap();
+    let file = rfcl_testkit::demos::hdf5_crash_reproducer(dir.path());
     let out = rfcl(&["demos", "inspect", file.to_str().unwrap()]);
     assert!(!out.status.success());
     let lines = error_lines(&out);

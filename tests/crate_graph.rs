@@ -1,7 +1,8 @@
 //! The workspace's dependency rule (docs/DESIGN.md, "Crates"): services meet only over the wire,
 //! so no service crate depends on another, and no library depends on a service. Checked over
 //! `cargo metadata`, every dependency kind included (normal, build, dev), so a test or an example
-//! cannot quietly pull one service into another either.
+//! cannot quietly pull one service into another either. The test kit (`rfcl-testkit`) is test
+//! support: any crate may take it, as a dev-dependency only, and it uses no service crate.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::process::Command;
@@ -9,18 +10,31 @@ use std::process::Command;
 /// The crates that build a service binary.
 const SERVICES: [&str; 3] = ["rfcl-curriculum", "rfcl-learner", "rfcl-actor"];
 
+/// The cross-process test helpers: every crate may have it, as a dev-dependency only.
+const TESTKIT: &str = "rfcl-testkit";
+
 /// Every workspace crate and the workspace crates it may depend on. The launcher (`rfcl`) is the
 /// one crate allowed to use the services' libraries: it runs them in-process for `rfcl bench` and
 /// `rfcl eval`, and reads the dashboard's JSON with the curriculum server's own types.
 fn allowed() -> BTreeMap<&'static str, BTreeSet<&'static str>> {
-    let libs = ["rfcl-proto", "rfcl-core", "rfcl-shm", "rfcl-policy"];
+    // rfcl-runtime: what a binary's main() does (logging, tokio runtime, signals, exit status).
+    let libs = [
+        "rfcl-proto",
+        "rfcl-core",
+        "rfcl-shm",
+        "rfcl-policy",
+        "rfcl-runtime",
+    ];
     let set = |names: &[&'static str]| names.iter().copied().collect::<BTreeSet<_>>();
     BTreeMap::from([
         ("rfcl-core", set(&[])),
         ("rfcl-shm", set(&[])),
+        ("rfcl-runtime", set(&[])),
+        // Test support: a dev-dependency of any crate (checked apart from this table).
+        (TESTKIT, set(&["rfcl-core", "rfcl-proto"])),
         ("rfcl-proto", set(&["rfcl-core"])),
         ("rfcl-policy", set(&["rfcl-core"])),
-        ("rfcl-probe", set(&["rfcl-proto"])),
+        ("rfcl-probe", set(&["rfcl-proto", "rfcl-runtime"])),
         ("rfcl-curriculum", set(&libs)),
         ("rfcl-learner", set(&libs)),
         ("rfcl-actor", set(&libs)),
@@ -73,6 +87,53 @@ fn workspace_dependencies() -> BTreeMap<String, BTreeSet<(String, String)>> {
         .collect()
 }
 
+/// The dependencies of `graph` outside the rule: not in `allowed`, or on [`TESTKIT`] as anything
+/// but a dev-dependency.
+fn breaches(
+    graph: &BTreeMap<String, BTreeSet<(String, String)>>,
+    allowed: &BTreeMap<&'static str, BTreeSet<&'static str>>,
+) -> Vec<String> {
+    let mut breaches = Vec::new();
+    for (krate, deps) in graph {
+        for (dep, kind) in deps {
+            if dep == TESTKIT {
+                if kind != "dev" {
+                    breaches.push(format!(
+                        "{krate} -> {dep} ({kind}; the test kit is a dev-dependency only)"
+                    ));
+                }
+            } else if !allowed[krate.as_str()].contains(dep.as_str()) {
+                breaches.push(format!("{krate} -> {dep} ({kind})"));
+            }
+        }
+    }
+    breaches
+}
+
+#[test]
+fn the_test_kit_is_only_ever_a_dev_dependency() {
+    let allowed = allowed();
+    let graph = |kind: &str| {
+        BTreeMap::from([(
+            "rfcl-learner".to_string(),
+            BTreeSet::from([(TESTKIT.to_string(), kind.to_string())]),
+        )])
+    };
+    assert!(breaches(&graph("dev"), &allowed).is_empty());
+    for kind in ["normal", "build"] {
+        assert_eq!(
+            breaches(&graph(kind), &allowed),
+            [format!(
+                "rfcl-learner -> rfcl-testkit ({kind}; the test kit is a dev-dependency only)"
+            )]
+        );
+    }
+    // And the kit itself uses no service.
+    for service in SERVICES {
+        assert!(!allowed[TESTKIT].contains(service));
+    }
+}
+
 #[test]
 fn services_meet_only_over_the_wire() {
     let allowed = allowed();
@@ -83,14 +144,7 @@ fn services_meet_only_over_the_wire() {
         names, expected,
         "workspace crates changed: say in this test and docs/DESIGN.md where the new one sits"
     );
-    let mut breaches = Vec::new();
-    for (krate, deps) in &graph {
-        for (dep, kind) in deps {
-            if !allowed[krate.as_str()].contains(dep.as_str()) {
-                breaches.push(format!("{krate} -> {dep} ({kind})"));
-            }
-        }
-    }
+    let breaches = breaches(&graph, &allowed);
     assert!(
         breaches.is_empty(),
         "dependencies outside the rule in docs/DESIGN.md: {breaches:?}"

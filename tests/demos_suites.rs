@@ -70,13 +70,7 @@ fn write_d4rl_door(path: &Path, open: u32, closed: u32, steps: u32) {
 }
 
 fn worker() -> PathBuf {
-    let path = Path::new(env!("CARGO_BIN_EXE_rfcl")).with_file_name("rfcl-sim-worker");
-    assert!(
-        path.is_file(),
-        "{} is not built: run `cargo build --release --workspace`",
-        path.display()
-    );
-    path
+    rfcl_testkit::binaries::sim_worker()
 }
 
 #[test]

@@ -15,22 +15,16 @@ const BAR: f64 = 0.9;
 
 #[test]
 fn a_killed_actor_is_respawned_and_its_leases_expire() {
-    require_services();
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_demos(dir.path());
-    let run_dir = dir.path().join("run");
-    let mut training = Training::start(
+    let mut training = start_test_run(
+        dir.path(),
         &[
-            test_config().display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
             format!("service.lease_timeout_s={LEASE_TIMEOUT_S}"),
             format!("service.stop_at_eval_success={BAR}"),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
         ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
+        "rfcl.stderr",
     );
+    let run_dir = training.run_dir.clone();
     let processes = training.processes(Duration::from_secs(120));
     let victim = child_pid(&processes, "actor-0");
 

@@ -105,20 +105,9 @@ fn processes_of(run_dir: &std::path::Path) -> Vec<(u32, String)> {
 
 #[test]
 fn ctrl_c_while_the_learner_starts_leaves_no_child_behind() {
-    require_services();
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_demos(dir.path());
-    let run_dir = dir.path().join("run");
-    let mut training = Training::start(
-        &[
-            test_config().display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
-        ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
-    );
+    let mut training = start_test_run(dir.path(), &[], "rfcl.stderr");
+    let run_dir = training.run_dir.clone();
     // The learner has been started (its log exists) but the session has not (no processes.json).
     wait_for(Duration::from_secs(120), || {
         run_dir.join("logs/learner.log").exists().then_some(())
@@ -141,20 +130,9 @@ fn ctrl_c_while_the_learner_starts_leaves_no_child_behind() {
 
 #[test]
 fn a_learner_that_keeps_dying_stops_the_run_with_a_failed_summary() {
-    require_services();
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_demos(dir.path());
-    let run_dir = dir.path().join("run");
-    let mut training = Training::start(
-        &[
-            test_config().display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
-        ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
-    );
+    let mut training = start_test_run(dir.path(), &[], "rfcl.stderr");
+    let run_dir = training.run_dir.clone();
     let mut processes = training.processes(Duration::from_secs(120));
     let mut killed = Vec::new();
     // Three deaths are restarted; the fourth within the window stops the run.

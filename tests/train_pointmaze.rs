@@ -19,21 +19,13 @@ const BAR: f64 = 0.9;
 
 #[test]
 fn pointmaze_test_config_trains_to_its_bar() {
-    require_services();
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_demos(dir.path());
-    let run_dir = dir.path().join("run");
-    let mut training = Training::start(
-        &[
-            test_config().display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
-            format!("service.stop_at_eval_success={BAR}"),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
-        ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
+    let mut training = start_test_run(
+        dir.path(),
+        &[format!("service.stop_at_eval_success={BAR}")],
+        "rfcl.stderr",
     );
+    let run_dir = training.run_dir.clone();
 
     // While it runs: every child is up, and the learner and the curriculum server count the
     // transitions and episodes the actors send.
@@ -102,7 +94,7 @@ fn pointmaze_test_config_trains_to_its_bar() {
         stderr.contains("run finished (eval success reached)"),
         "{stderr}"
     );
-    let stdout = training.stdout.lock().unwrap().join("\n");
+    let stdout = training.stdout_lines().join("\n");
     assert!(stdout.contains("dashboard: http://127.0.0.1:"), "{stdout}");
     let summary = training.summary();
     assert_reached(&summary, BAR);

@@ -13,21 +13,13 @@ const BAR: f64 = 0.9;
 
 #[test]
 fn sigint_then_resume_runs_to_completion() {
-    require_services();
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_demos(dir.path());
-    let run_dir = dir.path().join("run");
-    let mut first = Training::start(
-        &[
-            test_config().display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
-            format!("service.stop_at_eval_success={BAR}"),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
-        ],
-        &run_dir,
-        &dir.path().join("first.stderr"),
+    let mut first = start_test_run(
+        dir.path(),
+        &[format!("service.stop_at_eval_success={BAR}")],
+        "first.stderr",
     );
+    let run_dir = first.run_dir.clone();
     let processes = first.processes(Duration::from_secs(120));
     // Stop after the first complete evaluation.
     let progress = run_dir.join("train_progress.json");

@@ -22,24 +22,18 @@ fn replaced(run_dir: &std::path::Path, name: &str, old: u64) -> Option<(u64, ser
 
 #[test]
 fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
-    require_services();
     let dir = tempfile::tempdir().unwrap();
-    let demos = generate_demos(dir.path());
-    let run_dir = dir.path().join("run");
-    let mut training = Training::start(
+    let mut training = start_test_run(
+        dir.path(),
         &[
-            test_config().display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
             format!("service.stop_at_eval_success={BAR}"),
             // Snapshots and checkpoints often enough that each kill rolls back little.
             "service.snapshot_every_s=2".into(),
             "sac.save_every_s=10".into(),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
         ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
+        "rfcl.stderr",
     );
+    let run_dir = training.run_dir.clone();
     let processes = training.processes(Duration::from_secs(120));
 
     // The curriculum server, once episodes are being reported.

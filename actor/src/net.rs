@@ -29,6 +29,18 @@ pub fn policy_from_weights(
     )?))
 }
 
+/// The size of every policy version the learner publishes for `cfg` and these dims: the format
+/// has fixed tensor names and shapes, so one encoded network tells them all. An actor bounds what
+/// it accepts on its policy stream by it.
+pub fn published_policy_bytes(
+    cfg: &RunConfig,
+    obs_dim: usize,
+    action_dim: usize,
+) -> Result<usize, PolicyError> {
+    let net = PolicyNet::init(PolicyShape::from_config(cfg, obs_dim, action_dim), 0)?;
+    Ok(net.to_safetensors()?.len())
+}
+
 /// Acting on the CPU from an actor process: one libtorch thread (the cores belong to the
 /// learner; an actor's forward passes are tiny).
 pub fn configure_inference_threads() {

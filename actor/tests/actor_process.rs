@@ -11,10 +11,9 @@
 //!   clipped (spec 6.4), transitions keep the agent action, and a malformed or missing scale is
 //!   refused at start;
 //! * an unsupported suite is refused at start.
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -25,39 +24,14 @@ use rfcl_proto::auth::{authenticated, Guard, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_server::{Learner, LearnerServer};
+use rfcl_testkit::child::{self, ChildGuard};
 use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
-/// HDF5 opens files without O_CLOEXEC and holds a flock: no child may be forked while a demo file
-/// is open in this process (curriculum-server/tests/common/mod.rs).
-static HDF5_FORK_LOCK: Mutex<()> = Mutex::new(());
-
-fn fork_guard() -> std::sync::MutexGuard<'static, ()> {
-    HDF5_FORK_LOCK.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-/// A sibling binary of this package's test executables (built by `cargo build --workspace`).
-fn workspace_binary(name: &str) -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    let dir = exe.parent().and_then(Path::parent).unwrap();
-    let path = dir.join(name);
-    assert!(
-        path.is_file(),
-        "{} is not built: run `cargo build --release --workspace` (or cargo nextest run --workspace)",
-        path.display()
-    );
-    path
-}
-
 fn write_run(dir: &Path, extra: &str) -> (PathBuf, PathBuf, RunConfig) {
     let demos = dir.join("demos.h5");
-    {
-        let _g = fork_guard();
-        demo_set(generate_demos(3, 0), &demos)
-            .write(&demos)
-            .unwrap();
-    }
+    rfcl_testkit::demos::write_demo_set(&demo_set(generate_demos(3, 0), &demos), &demos);
     let config = dir.join("config.yml");
     std::fs::write(
         &config,
@@ -81,40 +55,28 @@ fn test_token() -> Token {
     Token::parse(TEST_TOKEN, "the tests").unwrap()
 }
 
+/// The `curriculum-server` binary (built by rfcl-testkit when missing); killed when dropped.
 struct Server {
-    child: Child,
+    _child: ChildGuard,
     grpc: String,
 }
 
 impl Server {
     fn start(config: &Path, demos: &Path, run_dir: &Path) -> Server {
-        let guard = fork_guard();
-        let mut child = Command::new(workspace_binary("curriculum-server"))
-            .arg("--config")
+        let mut cmd = Command::new(rfcl_testkit::binaries::curriculum_server());
+        cmd.arg("--config")
             .arg(config)
             .arg("--demos")
             .arg(demos)
             .arg("--run-dir")
             .arg(run_dir)
-            .env("RFCL_TOKEN", TEST_TOKEN)
-            .env_remove("RFCL_TOKEN_FILE")
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap();
-        drop(guard);
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let grpc = line
-            .split("grpc=")
-            .nth(1)
-            .and_then(|s| s.split_whitespace().next())
-            .unwrap_or_else(|| panic!("no ready line: {line:?}"))
-            .to_string();
-        Server { child, grpc }
+            .env("RUST_LOG", "warn");
+        let (child, ready) =
+            child::start_service("curriculum-server", child::with_token(&mut cmd, TEST_TOKEN));
+        Server {
+            _child: child,
+            grpc: ready.expect_field("grpc").to_string(),
+        }
     }
 
     async fn state(&self) -> serde_json::Value {
@@ -131,13 +93,6 @@ impl Server {
             .into_inner()
             .json;
         serde_json::from_str(&json).unwrap()
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
     }
 }
 
@@ -327,18 +282,14 @@ impl LearnerHandle {
     }
 }
 
-fn start_actor(learner: &str, extra: &[&str]) -> Child {
-    let _g = fork_guard();
-    Command::new(env!("CARGO_BIN_EXE_actor"))
+fn start_actor(learner: &str, extra: &[&str]) -> ChildGuard {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_actor"));
+    child::with_token(&mut cmd, TEST_TOKEN)
         .args(["--connect", learner, "--retry-for", "3"])
         .args(extra)
-        .env("RFCL_TOKEN", TEST_TOKEN)
-        .env_remove("RFCL_TOKEN_FILE")
         .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
+        .stdout(Stdio::null());
+    ChildGuard::spawn("actor", &mut cmd)
 }
 
 /// Waits (polling) until `done` or the deadline; false on timeout.
@@ -353,21 +304,10 @@ async fn wait_until(limit: Duration, mut done: impl FnMut() -> bool) -> bool {
     done()
 }
 
-/// Waits for the child to exit within `limit`; its output.
-fn exit_within(mut child: Child, limit: Duration) -> Output {
-    let until = Instant::now() + limit;
-    while Instant::now() < until {
-        if child.try_wait().unwrap().is_some() {
-            return child.wait_with_output().unwrap();
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let _ = child.kill();
-    let out = child.wait_with_output().unwrap();
-    panic!(
-        "the actor did not exit within {limit:?}:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+/// Waits for the actor to exit within `limit`: its exit status and all its stderr.
+fn exit_within(mut actor: ChildGuard, limit: Duration) -> (ExitStatus, String) {
+    let status = actor.wait_within(limit);
+    (status, actor.stderr_text())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -453,9 +393,8 @@ async fn a_train_actor_explores_then_follows_the_policy_and_reports_every_episod
 
     // The learner goes away: the actor retries for --retry-for (3 s), then exits non-zero.
     learner.shut_down();
-    let out = exit_within(actor, Duration::from_secs(30));
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{stderr}");
+    let (status, stderr) = exit_within(actor, Duration::from_secs(30));
+    assert!(!status.success(), "{stderr}");
     assert!(
         stderr.contains("error: actor 4:") && stderr.contains("learner at http://127.0.0.1"),
         "{stderr}"
@@ -483,14 +422,9 @@ async fn sigterm_with_its_streams_open_stops_the_actor_in_seconds() {
     .await;
     assert!(has_policy);
 
-    let killed = Command::new("kill")
-        .args(["-TERM", &actor.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
-    let out = exit_within(actor, Duration::from_secs(10));
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stderr}");
+    actor.signal(child::Signal::TERM);
+    let (status, stderr) = exit_within(actor, Duration::from_secs(10));
+    assert!(status.success(), "{stderr}");
     assert!(stderr.contains("stopped"), "{stderr}");
 }
 
@@ -555,9 +489,8 @@ async fn an_eval_actor_evaluates_each_eval_point_with_the_deterministic_policy()
     // The curriculum server goes away: a clear error naming it.
     drop(server);
     learner.publish(5, 3100);
-    let out = exit_within(actor, Duration::from_secs(30));
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success());
+    let (status, stderr) = exit_within(actor, Duration::from_secs(30));
+    assert!(!status.success());
     assert!(
         stderr.contains("curriculum server at http://127.0.0.1") && stderr.contains("unreachable"),
         "{stderr}"
@@ -622,12 +555,11 @@ async fn a_malformed_or_missing_action_scale_is_refused_at_start() {
         (vec![], "sent no RunInfo.action_scale"),
     ] {
         let mut learner = LearnerHandle::start_scaled(&cfg, "127.0.0.1:1", scale).await;
-        let out = exit_within(
+        let (status, stderr) = exit_within(
             start_actor(&learner.addr, &["--envs", "1"]),
             Duration::from_secs(20),
         );
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success());
+        assert!(!status.success());
         assert!(stderr.contains(expected), "{expected:?} in {stderr}");
         learner.shut_down();
     }
@@ -640,12 +572,11 @@ async fn an_unsupported_suite_is_refused_at_start() {
     cfg.env.suite = rfcl_core::config::Suite::Metaworld;
     cfg.env.env_id = "reach-v2-goal-observable".into();
     let mut learner = LearnerHandle::start(&cfg, "127.0.0.1:1").await;
-    let out = exit_within(
+    let (status, stderr) = exit_within(
         start_actor(&learner.addr, &["--envs", "1"]),
         Duration::from_secs(20),
     );
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success());
+    assert!(!status.success());
     assert!(
         // The Python worker refuses a MetaWorld v2 id (MetaWorld 3 names tasks -v3).
         stderr.contains("env 'reach-v2-goal-observable' of suite 'metaworld': "),
@@ -658,12 +589,11 @@ async fn an_unsupported_suite_is_refused_at_start() {
 fn no_learner_is_a_clear_error_after_the_retry_period() {
     let started = Instant::now();
     // Nothing listens on port 1.
-    let out = exit_within(
+    let (status, stderr) = exit_within(
         start_actor("http://127.0.0.1:1", &[]),
         Duration::from_secs(30),
     );
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success());
+    assert!(!status.success());
     assert!(
         stderr.contains("learner at http://127.0.0.1:1 unreachable for 3 s (GetRunInfo)"),
         "{stderr}"

@@ -307,6 +307,16 @@ fn rules_between_options_are_enforced() {
             "cannot be combined with train.stage_1_only",
         ),
         (
+            |c| c.train.use_orig_env_for_eval = false,
+            "train.use_orig_env_for_eval",
+            "is not supported by rfcl",
+        ),
+        (
+            |c| c.train.eval_start_of_demos = true,
+            "train.eval_start_of_demos",
+            "is not supported by rfcl",
+        ),
+        (
             |c| c.train.load_as_online_buffer = true,
             "train.load_as_online_buffer",
             "docs/ALGORITHM.md 4.2",

@@ -95,7 +95,12 @@ impl Curriculum {
         Ok(Self {
             reverse: Reverse::new(config.reverse.clone(), demos, horizon)?,
             forward: Forward::new(config.forward.clone(), demos)?,
-            stages: StageMachine::new(&config.train)?,
+            stages: StageMachine::new(
+                config
+                    .train
+                    .stage_plan()
+                    .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))?,
+            ),
             horizon,
             rng: ChaCha8Rng::seed_from_u64(config.seed),
         })

@@ -47,27 +47,13 @@ struct Args {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    // A damaged demo file can crash libhdf5: read once in a child copy of this binary first.
+    rfcl_runtime::isolated::serve_if_child(|file| {
+        DemoSet::load(file).map(drop).map_err(Into::into)
+    });
+    rfcl_runtime::init_logging();
     let args = Args::parse();
-    let runtime = match tokio::runtime::Runtime::new() {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("error: starting the async runtime: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    match runtime.block_on(run(args)) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(err) => {
-            eprintln!("error: {err:#}");
-            ExitCode::FAILURE
-        }
-    }
+    rfcl_runtime::run(rfcl_runtime::Flavor::MultiThread, run(args))
 }
 
 async fn run(args: Args) -> Result<()> {
@@ -83,6 +69,7 @@ async fn run(args: Args) -> Result<()> {
             args.config.display()
         ),
     };
+    rfcl_runtime::isolated::refuse_if_it_crashes(&demo_path, "HDF5")?;
     let all = DemoSet::load(&demo_path)?;
     let demos = all.select(
         cfg.train.num_demos as usize,
@@ -131,15 +118,12 @@ async fn run(args: Args) -> Result<()> {
     let (grpc, dash) = bound.addrs()?;
     // One machine-readable line on stdout: `rfcl train` and tests read the ports from it.
     println!("curriculum-server ready grpc={grpc} dashboard=http://{dash}/");
-    serve(shared, bound, auth, Some(run_dir), shutdown_signal()).await
-}
-
-/// SIGINT or SIGTERM.
-async fn shutdown_signal() {
-    use tokio::signal::unix::{signal, SignalKind};
-    let mut term = signal(SignalKind::terminate()).expect("installing the SIGTERM handler");
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = term.recv() => {}
-    }
+    serve(
+        shared,
+        bound,
+        auth,
+        Some(run_dir),
+        rfcl_runtime::shutdown_signal(),
+    )
+    .await
 }

@@ -299,6 +299,19 @@ fn join_error(e: &tokio::task::JoinError) -> String {
     }
 }
 
+/// Whether a gRPC response is tonic's refusal of a request over [`MAX_REQUEST_BYTES`]: tonic
+/// refuses it while decoding, before any handler runs, as a trailers-only response with
+/// OUT_OF_RANGE and a (percent-encoded) message saying the message is too large. Counting it here
+/// is the only place such a call is seen.
+fn is_oversized_refusal(headers: &axum::http::HeaderMap) -> bool {
+    let status = headers.get("grpc-status").map(|v| v.as_bytes());
+    let message = headers
+        .get("grpc-message")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or_default();
+    status == Some(b"11") && message.contains("too%20large")
+}
+
 /// Serves until `shutdown` resolves (or one of the server's own tasks ends, which is an error
 /// naming it), then writes a last snapshot (when there is a run dir). Every gRPC call must carry
 /// the run's token (`auth`, whose guard `shared` counts the refusals of); the standard health
@@ -333,7 +346,16 @@ pub async fn serve(
     })
     .max_decoding_message_size(MAX_REQUEST_BYTES)
     .max_encoding_message_size(MAX_REPLY_BYTES);
+    let oversized = shared.oversized_requests.clone();
     let grpc = rfcl_proto::link::server(auth.server().context("configuring TLS")?)
+        .layer(tower::util::MapResponseLayer::new(
+            move |response: axum::http::Response<tonic::body::Body>| {
+                if is_oversized_refusal(response.headers()) {
+                    oversized.fetch_add(1, Ordering::Relaxed);
+                }
+                response
+            },
+        ))
         .add_service(health)
         .add_service(InterceptedService::new(curriculum, auth.guard.clone()))
         .serve_with_incoming_shutdown(

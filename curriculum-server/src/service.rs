@@ -28,6 +28,9 @@ pub struct Shared {
     pub stopping: Arc<watch::Sender<bool>>,
     /// Snapshot writes that failed (the dashboard and /metrics show them).
     pub snapshot_failures: Arc<AtomicU64>,
+    /// gRPC requests refused for being over the server's message limit: tonic refuses them
+    /// before any handler sees them, so the server's gRPC layer counts them.
+    pub oversized_requests: Arc<AtomicU64>,
 }
 
 impl Shared {
@@ -42,6 +45,7 @@ impl Shared {
             guard,
             stopping: Arc::new(watch::channel(false).0),
             snapshot_failures: Arc::new(AtomicU64::new(0)),
+            oversized_requests: Arc::new(AtomicU64::new(0)),
         }
     }
 
@@ -52,13 +56,14 @@ impl Shared {
     }
 
     /// The dashboard's view: the state's, with the counters kept outside it (calls refused by the
-    /// token check, failed snapshot writes) and, on PointMaze, the heatmap.
+    /// token check or for their size, failed snapshot writes) and, on PointMaze, the heatmap.
     pub fn view(&self) -> DashboardView {
         let now = unix_now();
         let state = self.lock();
         let mut view = state.view(&self.cfg.name, &self.cfg.env.env_id, now);
         view.unauthenticated_calls = self.guard.refused();
         view.snapshot_failures = self.snapshot_failures.load(Ordering::Relaxed);
+        view.oversized_requests = self.oversized_requests.load(Ordering::Relaxed);
         if self.cfg.env.suite == Suite::Pointmaze {
             view.maze = Some(state.maze_view(&self.demos));
         }

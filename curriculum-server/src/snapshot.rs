@@ -20,12 +20,12 @@ struct SnapshotFile<S> {
 
 #[derive(Debug, thiserror::Error)]
 pub enum SnapshotError {
-    #[error("{path}: {source}")]
+    #[error("{path}")]
     Io {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("{path}: not a curriculum snapshot: {source}")]
+    #[error("{path}: not a curriculum snapshot")]
     Parse {
         path: PathBuf,
         source: serde_json::Error,

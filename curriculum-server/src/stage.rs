@@ -1,10 +1,8 @@
 //! The stage machine (spec 2.7, 4): stage 1 (reverse curriculum) until the reverse curriculum is
 //! done, then stage 2 (forward curriculum), or the end of the run with `stage_1_only`. Every change
 //! bumps the stage epoch.
-use rfcl_core::config::TrainConfig;
+use rfcl_core::config::StagePlan;
 use serde::{Deserialize, Serialize};
-
-use crate::CurriculumError;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Stage {
@@ -69,25 +67,20 @@ pub struct StageMachine {
 }
 
 impl StageMachine {
-    /// Starts in stage 1, or directly in stage 2 with `stage_2_only` (stage 1 then ended at step 0).
-    pub fn new(train: &TrainConfig) -> Result<Self, CurriculumError> {
-        if train.stage_1_only && train.stage_2_only {
-            return Err(CurriculumError::InvalidConfig(
-                "train.stage_1_only and train.stage_2_only exclude each other".into(),
-            ));
-        }
-        let (stage, stage_1_end_env_steps) = if train.stage_2_only {
-            (Stage::Forward, Some(0))
-        } else {
-            (Stage::Reverse, None)
+    /// Starts in stage 1, or directly in stage 2 for a forward-only run (stage 1 then ended at
+    /// step 0). The plan comes from [`TrainConfig::stage_plan`](rfcl_core::config::TrainConfig::stage_plan), which refuses contradictory options.
+    pub fn new(plan: StagePlan) -> Self {
+        let (stage, stage_1_end_env_steps) = match plan {
+            StagePlan::ForwardOnly => (Stage::Forward, Some(0)),
+            StagePlan::Both | StagePlan::ReverseOnly => (Stage::Reverse, None),
         };
-        Ok(Self {
+        Self {
             stage,
             epoch: 0,
-            stage_1_only: train.stage_1_only,
+            stage_1_only: plan == StagePlan::ReverseOnly,
             stage_1_end_env_steps,
             finished_in: None,
-        })
+        }
     }
 
     pub fn stage(&self) -> Stage {
@@ -166,10 +159,11 @@ impl StageMachine {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rfcl_core::config::TrainConfig;
 
     #[test]
     fn stage_1_then_stage_2_once() {
-        let mut stages = StageMachine::new(&TrainConfig::default()).unwrap();
+        let mut stages = StageMachine::new(StagePlan::Both);
         assert_eq!((stages.stage(), stages.epoch()), (Stage::Reverse, 0));
         assert_eq!(stages.stage_1_end_env_steps(), None);
         assert_eq!(
@@ -188,7 +182,7 @@ mod tests {
 
     #[test]
     fn the_stop_rule_finishes_the_run_in_either_stage() {
-        let mut stages = StageMachine::new(&TrainConfig::default()).unwrap();
+        let mut stages = StageMachine::new(StagePlan::Both);
         let change = stages.finish(900).unwrap();
         assert_eq!(
             (change.from, change.to, change.epoch),
@@ -197,7 +191,7 @@ mod tests {
         assert_eq!((stages.number(), stages.stage_1_end_env_steps()), (1, None));
         assert_eq!(stages.finish(950), None);
 
-        let mut stages = StageMachine::new(&TrainConfig::default()).unwrap();
+        let mut stages = StageMachine::new(StagePlan::Both);
         stages.end_stage_1(500);
         assert_eq!(stages.number(), 2);
         assert_eq!(
@@ -220,30 +214,21 @@ mod tests {
 
     #[test]
     fn stage_only_options() {
-        let only_2 = TrainConfig {
-            stage_2_only: true,
-            ..TrainConfig::default()
-        };
-        let mut stages = StageMachine::new(&only_2).unwrap();
+        let mut stages = StageMachine::new(StagePlan::ForwardOnly);
         assert_eq!(stages.stage(), Stage::Forward);
         assert_eq!(stages.stage_1_end_env_steps(), Some(0));
         assert_eq!(stages.end_stage_1(10), None);
 
-        let only_1 = TrainConfig {
-            stage_1_only: true,
-            ..TrainConfig::default()
-        };
-        let mut stages = StageMachine::new(&only_1).unwrap();
+        let mut stages = StageMachine::new(StagePlan::ReverseOnly);
         assert_eq!(stages.end_stage_1(10).map(|c| c.to), Some(Stage::Finished));
         assert_eq!(stages.epoch(), 1);
 
         let both = TrainConfig {
             stage_1_only: true,
-            ..only_2
+            stage_2_only: true,
+            ..TrainConfig::default()
         };
-        assert!(matches!(
-            StageMachine::new(&both),
-            Err(CurriculumError::InvalidConfig(_))
-        ));
+        let err = both.stage_plan().unwrap_err().to_string();
+        assert!(err.contains("train.stage_2_only"), "{err}");
     }
 }

@@ -65,14 +65,11 @@ async fn chromium_renders_the_demo_bars() {
         client.report(report).await.unwrap();
     }
 
-    let out = {
-        let _guard = hdf5_fork_guard();
+    let out = rfcl_testkit::child::output(
         headless(&dir.path().join("profile"))
             .arg("--dump-dom")
-            .arg(&server.dashboard)
-            .output()
-            .unwrap()
-    };
+            .arg(&server.dashboard),
+    );
     assert!(
         out.status.success(),
         "chromium failed: {}",
@@ -91,16 +88,13 @@ async fn chromium_renders_the_demo_bars() {
 
     // A screenshot renders too (the README's picture is made the same way).
     let shot = dir.path().join("dashboard.png");
-    let status = {
-        let _guard = hdf5_fork_guard();
+    let status = rfcl_testkit::child::output(
         headless(&dir.path().join("profile2"))
             .arg(format!("--screenshot={}", shot.display()))
             .arg("--window-size=900,1400")
-            .arg(&server.dashboard)
-            .output()
-            .unwrap()
-            .status
-    };
+            .arg(&server.dashboard),
+    )
+    .status;
     assert!(status.success());
     let png = std::fs::read(&shot).unwrap();
     assert!(
@@ -110,14 +104,7 @@ async fn chromium_renders_the_demo_bars() {
     );
 
     // /api/state and /metrics describe the same state.
-    let get = |path: &str| {
-        let out = Command::new("curl")
-            .args(["-sf", &format!("{}{}", server.dashboard, path)])
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "GET {path} failed");
-        String::from_utf8(out.stdout).unwrap()
-    };
+    let get = |path: &str| server.dashboard_get(path);
     let view: rfcl_curriculum::dashboard::DashboardView =
         serde_json::from_str(&get("api/state")).unwrap();
     assert_eq!((view.episodes, view.sim_worker_restarts), (30, 1));

@@ -161,7 +161,7 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     // The restarted server hands out exactly what the snapshot's state hands out in-process.
     let cfg = rfcl_core::config::resolve_file(&config, &[]).unwrap();
     let set = {
-        let _guard = hdf5_fork_guard();
+        let _guard = rfcl_testkit::hdf5::fork_guard();
         DemoSet::load(&demos).unwrap().select(3, false, 7).unwrap()
     };
     let resets = DemoResets::from_demos(&set);
@@ -341,17 +341,15 @@ fn startup_errors_are_one_clear_line() {
     let dir = tempfile::tempdir().unwrap();
     let config = write_config(dir.path(), 30.0);
     let missing = dir.path().join("nope.h5");
-    let _guard = hdf5_fork_guard();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
-        .env("RFCL_TOKEN", TEST_TOKEN)
-        .args([
+    let out = run_server(
+        &[
             "--demos",
             missing.to_str().unwrap(),
             "--config",
             config.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
+        ],
+        Some(TEST_TOKEN),
+    );
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     let line = stderr
@@ -359,6 +357,27 @@ fn startup_errors_are_one_clear_line() {
         .find(|l| l.starts_with("error:"))
         .expect("an error line");
     assert!(line.contains("nope.h5"), "{line}");
+
+    // A file that crashes libhdf5 itself is named, not a segmentation fault.
+    let damaged = rfcl_testkit::demos::hdf5_crash_reproducer(dir.path());
+    let out = run_server(
+        &[
+            "--demos",
+            damaged.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+        ],
+        Some(TEST_TOKEN),
+    );
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
+    assert_eq!(errors.len(), 1, "{stderr}");
+    assert!(
+        errors[0].contains("damaged.h5") && errors[0].contains("crashed the HDF5 library"),
+        "{}",
+        errors[0]
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -407,11 +426,7 @@ async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
         "the forged report did not close the lease"
     );
     assert_eq!(after.unauthenticated_calls, 5);
-    let out = std::process::Command::new("curl")
-        .args(["-sf", &format!("{}metrics", server.dashboard)])
-        .output()
-        .unwrap();
-    let metrics = String::from_utf8_lossy(&out.stdout);
+    let metrics = server.dashboard_get("metrics");
     assert!(
         metrics.contains("rfcl_curriculum_unauthenticated_calls_total 5"),
         "{metrics}"
@@ -440,18 +455,15 @@ fn a_server_without_a_run_token_does_not_start() {
     let dir = tempfile::tempdir().unwrap();
     let demos = write_demos(dir.path(), 1, 20);
     let config = write_config(dir.path(), 30.0);
-    let _guard = hdf5_fork_guard();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
-        .env_remove("RFCL_TOKEN")
-        .env_remove("RFCL_TOKEN_FILE")
-        .args([
+    let out = run_server(
+        &[
             "--demos",
             demos.to_str().unwrap(),
             "--config",
             config.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
+        ],
+        None,
+    );
     assert!(!out.status.success());
     assert!(out.stdout.is_empty(), "no ready line");
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -609,10 +621,7 @@ async fn sigterm_with_open_stage_watches_exits_promptly_and_writes_the_snapshot(
     client.report(report_for(&lease, true, 1.0)).await.unwrap();
     assert_eq!(state_view(&mut client).await.episodes, 1);
 
-    std::process::Command::new("kill")
-        .args(["-TERM", &server.child.id().to_string()])
-        .status()
-        .unwrap();
+    server.child.signal(rfcl_testkit::child::Signal::TERM);
     let t0 = std::time::Instant::now();
     let status = loop {
         if let Some(status) = server.child.try_wait().unwrap() {
@@ -697,11 +706,7 @@ async fn reports_beyond_their_lease_are_refused_counted_and_leave_it_open() {
         (2, 1)
     );
     assert_eq!(view.open_leases, 1, "the lease stays open for its holder");
-    let out = std::process::Command::new("curl")
-        .args(["-sf", &format!("{}metrics", server.dashboard)])
-        .output()
-        .unwrap();
-    let metrics = String::from_utf8_lossy(&out.stdout);
+    let metrics = server.dashboard_get("metrics");
     for line in [
         "rfcl_curriculum_reports_refused_total{reason=\"over_time_limit\"} 2",
         "rfcl_curriculum_reports_refused_total{reason=\"not_holder\"} 1",
@@ -787,5 +792,13 @@ async fn an_oversized_request_is_refused_and_the_server_keeps_serving() {
             .into_inner()
             .applied
     );
-    assert_eq!(state_view(&mut client).await.episodes, 1);
+    let view = state_view(&mut client).await;
+    assert_eq!(view.episodes, 1);
+    // Refused before any handler ran, and still counted and shown.
+    assert_eq!(view.oversized_requests, 1, "the small call is not counted");
+    let metrics = server.dashboard_get("metrics");
+    assert!(
+        metrics.contains("rfcl_curriculum_oversized_requests_total 1"),
+        "{metrics}"
+    );
 }

@@ -20,7 +20,7 @@ use rfcl_core::transition::{RecordLayout, Transition};
 use rfcl_learner::ingest::{IngestCounters, IngestItem};
 use rfcl_learner::service::{self, LearnerService, RunDescription};
 use rfcl_learner::shm::{ShmSetup, ShmTransport};
-use rfcl_learner::trainer::LearnerStatus;
+use rfcl_learner::trainer::{LearnerStatus, PublishedPolicy};
 use rfcl_proto::auth::{authenticated, ServerAuth, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::learner_client::LearnerClient;
@@ -78,10 +78,10 @@ fn report(transport: &str, batch: usize, layout: RecordLayout, m: &Measured) {
 }
 
 fn policy_channel() -> (
-    watch::Sender<Arc<v1::PolicyWeights>>,
-    watch::Receiver<Arc<v1::PolicyWeights>>,
+    watch::Sender<Arc<PublishedPolicy>>,
+    watch::Receiver<Arc<PublishedPolicy>>,
 ) {
-    watch::channel(Arc::new(v1::PolicyWeights {
+    watch::channel(Arc::new(PublishedPolicy {
         version: 1,
         safetensors: vec![0u8; 1024].into(),
         learner_env_steps: 0,

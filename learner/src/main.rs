@@ -84,36 +84,18 @@ struct Args {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    // A damaged demo file can crash libhdf5: read once in a child copy of this binary first.
+    rfcl_runtime::isolated::serve_if_child(|file| {
+        DemoSet::load(file).map(drop).map_err(Into::into)
+    });
+    rfcl_runtime::init_logging();
     let args = Args::parse();
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-    {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("error: starting the async runtime: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    match runtime.block_on(run(args)) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(err) => {
-            eprintln!("error: {err:#}");
-            ExitCode::FAILURE
-        }
-    }
+    rfcl_runtime::run(rfcl_runtime::Flavor::Workers(2), run(args))
 }
 
 async fn run(args: Args) -> Result<()> {
     // Installed first: a signal during start-up is handled, not fatal.
-    let mut signals = Signals::install()?;
+    let mut signals = rfcl_runtime::Signals::install()?;
     // Every call needs the run's token (and TLS when configured), ours to the curriculum server
     // too: read before anything else so a missing token fails at once.
     let server_auth = ServerAuth::from_env().context("the learner's gRPC service")?;
@@ -414,6 +396,7 @@ fn load_demos(args: &Args, cfg: &RunConfig) -> Result<DemoSet> {
         (None, Some(p)) => PathBuf::from(p),
         (None, None) => bail!("no demos: pass --demos FILE or set train.dataset_path"),
     };
+    rfcl_runtime::isolated::refuse_if_it_crashes(&path, "HDF5")?;
     let all = DemoSet::load(&path).with_context(|| format!("loading demos {}", path.display()))?;
     let demos = all
         .select(
@@ -443,27 +426,4 @@ fn hostname() -> String {
         .filter(|s| !s.is_empty())
         .or_else(|| std::env::var("HOSTNAME").ok())
         .unwrap_or_else(|| "localhost".into())
-}
-
-/// SIGINT and SIGTERM.
-struct Signals {
-    int: tokio::signal::unix::Signal,
-    term: tokio::signal::unix::Signal,
-}
-
-impl Signals {
-    fn install() -> Result<Self> {
-        use tokio::signal::unix::{signal, SignalKind};
-        Ok(Self {
-            int: signal(SignalKind::interrupt()).context("installing the SIGINT handler")?,
-            term: signal(SignalKind::terminate()).context("installing the SIGTERM handler")?,
-        })
-    }
-
-    async fn recv(&mut self) {
-        tokio::select! {
-            _ = self.int.recv() => {}
-            _ = self.term.recv() => {}
-        }
-    }
 }

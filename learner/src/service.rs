@@ -46,7 +46,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::ingest::{validate_batch, IngestCounters, IngestItem, StreamTally, Transport};
-use crate::trainer::LearnerStatus;
+use crate::trainer::{LearnerStatus, PolicyWatch};
 
 /// Largest gRPC message sent (policy weights of wide networks). What the learner accepts is
 /// [`max_request_bytes`].
@@ -111,7 +111,7 @@ pub struct LearnerService {
     layout: RecordLayout,
     status: Arc<LearnerStatus>,
     ingest: mpsc::Sender<IngestItem>,
-    policy: watch::Receiver<Arc<v1::PolicyWeights>>,
+    policy: PolicyWatch,
     /// True once the learner is shutting down: open streams are answered and closed.
     stopping: watch::Receiver<bool>,
     counters: Arc<IngestCounters>,
@@ -126,7 +126,7 @@ impl LearnerService {
         info: RunDescription,
         status: Arc<LearnerStatus>,
         ingest: mpsc::Sender<IngestItem>,
-        policy: watch::Receiver<Arc<v1::PolicyWeights>>,
+        policy: PolicyWatch,
         stopping: watch::Receiver<bool>,
         counters: Arc<IngestCounters>,
         guard: Guard,
@@ -281,7 +281,13 @@ impl Learner for LearnerService {
         let after = request.into_inner().after_version;
         let stream = tokio_stream::wrappers::WatchStream::new(self.policy.clone())
             .filter(move |weights| weights.version > after)
-            .map(|weights| Ok(v1::PolicyWeights::clone(&weights)));
+            .map(|weights| {
+                Ok(v1::PolicyWeights {
+                    version: weights.version,
+                    safetensors: weights.safetensors.clone(),
+                    learner_env_steps: weights.learner_env_steps,
+                })
+            });
         Ok(Response::new(Box::pin(stream)))
     }
 

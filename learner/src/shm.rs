@@ -26,7 +26,6 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use rfcl_core::transition::RecordLayout;
-use rfcl_proto::v1;
 use rfcl_shm::{
     Cleanup, PolicyHeader, PolicyLimits, PolicyPublisher, ServiceNames, ShmError, ShmNode,
     TransitionLimits, TransitionSubscriber,
@@ -36,7 +35,7 @@ use tokio::sync::{mpsc, watch};
 use crate::ingest::{
     validate_records, IngestCounters, IngestItem, RecordsHeader, StreamTally, Transport,
 };
-use crate::trainer::LearnerStatus;
+use crate::trainer::{LearnerStatus, PolicyWatch};
 
 /// Names shared-memory frames in validation errors.
 const FRAME: &str = "shared-memory transition frame";
@@ -74,7 +73,7 @@ impl ShmTransport {
         setup: ShmSetup,
         status: Arc<LearnerStatus>,
         ingest: mpsc::Sender<IngestItem>,
-        policy: watch::Receiver<Arc<v1::PolicyWeights>>,
+        policy: PolicyWatch,
         counters: Arc<IngestCounters>,
         stopping: watch::Receiver<bool>,
         runtime: tokio::runtime::Handle,
@@ -154,7 +153,7 @@ impl ShmTransport {
         layout: RecordLayout,
         status: &Arc<LearnerStatus>,
         ingest: &mpsc::Sender<IngestItem>,
-        policy: &watch::Receiver<Arc<v1::PolicyWeights>>,
+        policy: &PolicyWatch,
         counters: &Arc<IngestCounters>,
         stopping: &watch::Receiver<bool>,
     ) -> Result<Self, ShmError> {
@@ -178,11 +177,10 @@ impl ShmTransport {
     }
 }
 
-fn thread_error(service: &str, e: std::io::Error) -> ShmError {
-    ShmError::Io {
-        what: "starting the thread",
+fn thread_error(service: &str, source: std::io::Error) -> ShmError {
+    ShmError::Thread {
         service: service.to_string(),
-        problem: e.to_string(),
+        source,
     }
 }
 
@@ -258,7 +256,7 @@ impl IngestLoop {
                     }
                     Ok(_) => idle = 0,
                     Err(e) => {
-                        self.warn(format_args!("{e}"));
+                        self.warn(format_args!("{:#}", anyhow::Error::new(e)));
                         std::thread::sleep(Duration::from_millis(10));
                         continue;
                     }
@@ -377,7 +375,7 @@ impl IngestLoop {
 /// Publishes the current version, then every newer one, until training ends or the learner stops.
 fn publish_policies(
     publisher: PolicyPublisher,
-    mut policy: watch::Receiver<Arc<v1::PolicyWeights>>,
+    mut policy: PolicyWatch,
     mut stopping: watch::Receiver<bool>,
     runtime: tokio::runtime::Handle,
 ) {
@@ -389,7 +387,10 @@ fn publish_policies(
             learner_env_steps: weights.learner_env_steps,
         };
         if let Err(e) = publisher.publish(header, &weights.safetensors) {
-            tracing::error!("{e}; actors on this host keep their last policy");
+            tracing::error!(
+                "{:#}; actors on this host keep their last policy",
+                anyhow::Error::new(e)
+            );
             return;
         }
         published += 1;
@@ -406,7 +407,7 @@ fn publish_policies(
                 Some(more) => break more,
                 None => {
                     if let Err(e) = publisher.connect_new_subscribers() {
-                        tracing::warn!("{e}");
+                        tracing::warn!("{:#}", anyhow::Error::new(e));
                     }
                 }
             }

@@ -48,7 +48,6 @@ use std::time::{Duration, Instant};
 use rfcl_core::config::{RunConfig, UtdMode};
 use rfcl_core::transition::RecordLayout;
 use rfcl_policy::PolicyError;
-use rfcl_proto::v1;
 use thiserror::Error;
 use tokio::sync::{mpsc, watch};
 
@@ -63,6 +62,7 @@ use crate::sac::Sac;
 use crate::stages::StageAnnouncement;
 use crate::tensorboard::EventWriter;
 
+pub use outputs::{PolicyWatch, PublishedPolicy};
 pub use setup::{replay_seed, steps_per_iteration};
 use telemetry::Window;
 pub use telemetry::{LearnerStatus, StatusSnapshot};
@@ -160,7 +160,7 @@ pub struct Trainer {
     report: Window,
     started: Instant,
     wall_ms_at_start: u64,
-    policy_tx: watch::Sender<Arc<v1::PolicyWeights>>,
+    policy_tx: watch::Sender<Arc<PublishedPolicy>>,
     status: Arc<LearnerStatus>,
     /// Last time a policy-lag warning was logged.
     lag_warned: Option<Instant>,

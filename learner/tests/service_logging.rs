@@ -5,9 +5,9 @@
 mod service_support;
 
 use std::collections::BTreeMap;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use rfcl_learner::tensorboard::EventWriter;
@@ -85,29 +85,16 @@ async fn metrics_endpoint_while_training_and_tensorboard_events_equal_to_metrics
     let config = write_config(dir.path(), W, STEPS, "");
     let curriculum = Curriculum::start(&config, &demos, &run_dir);
 
-    let guard = hdf5_fork_guard();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_learner"))
-        .args(["--threads", "1", "--metrics-port", "0"])
-        .args(Learner::args(&config, &curriculum.grpc, &demos, &run_dir))
-        .env("RFCL_TOKEN", TEST_TOKEN)
-        .env("OMP_WAIT_POLICY", "PASSIVE")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("starting learner");
-    drop(guard);
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let field = |key: &str| {
-        line.split_whitespace()
-            .find_map(|w| w.strip_prefix(key)?.strip_prefix('='))
-            .unwrap_or_else(|| panic!("no {key}= on the ready line {line:?}"))
-            .to_string()
-    };
-    let (grpc, metrics_url) = (field("grpc"), field("metrics"));
-    let mut learner = Learner::from_child(child, format!("http://{grpc}"));
+    let mut args: Vec<std::ffi::OsString> = vec![
+        "--threads".into(),
+        "1".into(),
+        "--metrics-port".into(),
+        "0".into(),
+    ];
+    args.extend(Learner::args(&config, &curriculum.grpc, &demos, &run_dir));
+    let args: Vec<&std::ffi::OsStr> = args.iter().map(std::ffi::OsString::as_os_str).collect();
+    let (mut learner, ready) = Learner::start_command(&mut learner_command(&args));
+    let metrics_url = ready.expect_field("metrics").to_string();
     let mut client = learner.client().await;
 
     push(&mut client, batches(0..PUSHED, 8, 0)).await.unwrap();

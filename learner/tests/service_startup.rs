@@ -56,6 +56,14 @@ fn start_up_failures_exit_non_zero_with_one_clear_line() {
     ));
     assert!(line.contains("missing.h5"), "{line}");
 
+    // A file that crashes libhdf5 itself is named, not a segmentation fault.
+    let damaged = rfcl_testkit::demos::hdf5_crash_reproducer(dir.path());
+    let line = failure(&args(&config, &dead, &damaged, &run_dir));
+    assert!(
+        line.contains("damaged.h5") && line.contains("crashed the HDF5 library"),
+        "{line}"
+    );
+
     // Demos whose dims differ from the config's.
     let mut dims = args(&config, &dead, &demos, &run_dir);
     dims.push("env.obs_dim=7".into());

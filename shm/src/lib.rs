@@ -19,6 +19,7 @@ pub mod ports;
 pub use frame::{FrameError, PolicyHeader, TransitionHeader};
 pub use naming::{host_identity, new_run_id, ServiceNames};
 pub use ports::{
-    Cleanup, PolicyFrame, PolicyLimits, PolicyPublisher, PolicySubscriber, Sent, ShmError, ShmNode,
-    TransitionFrame, TransitionLimits, TransitionPublisher, TransitionSubscriber,
+    Cleanup, Frame, FrameHeader, PolicyFrame, PolicyLimits, PolicyPublisher, PolicySubscriber,
+    Sent, ShmError, ShmNode, TransitionFrame, TransitionLimits, TransitionPublisher,
+    TransitionSubscriber,
 };

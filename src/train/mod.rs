@@ -38,6 +38,7 @@ use rfcl_proto::auth::{self, AuthChannel, ClientAuth, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
+use rfcl_runtime::Signals;
 use tonic::transport::Channel;
 
 use children::{describe, find_setpriv, Child, Launcher};
@@ -280,30 +281,6 @@ impl Service {
     }
 }
 
-/// Ctrl-C and SIGTERM, installed before the first child starts, so an interrupt at any moment (a
-/// service still starting included) stops the children rather than leaving them behind.
-struct Signals {
-    interrupt: tokio::signal::unix::Signal,
-    terminate: tokio::signal::unix::Signal,
-}
-
-impl Signals {
-    fn install() -> Result<Self> {
-        use tokio::signal::unix::{signal, SignalKind};
-        Ok(Self {
-            interrupt: signal(SignalKind::interrupt()).context("installing SIGINT handler")?,
-            terminate: signal(SignalKind::terminate()).context("installing SIGTERM handler")?,
-        })
-    }
-
-    async fn recv(&mut self) {
-        tokio::select! {
-            _ = self.interrupt.recv() => {}
-            _ = self.terminate.recv() => {}
-        }
-    }
-}
-
 /// The processes of a running session and what is known of them.
 struct Session {
     prep: Prepared,
@@ -358,6 +335,8 @@ async fn train_async(args: TrainArgs) -> Result<Summary> {
         prep.run_dir.display(),
         launcher.log_dir.display()
     );
+    // Ctrl-C and SIGTERM, installed before the first child starts, so an interrupt at any moment
+    // (a service still starting included) stops the children rather than leaving them behind.
     let mut signals = Signals::install()?;
     // Dropping a half-started session kills the children it started (`kill_on_drop`).
     let mut session = tokio::select! {

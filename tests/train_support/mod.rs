@@ -2,19 +2,24 @@
 //! train` as a child process, and the running services' own counters read over gRPC.
 //!
 //! No demo file is ever opened in a test process: the demos are written by the `rfcl` child, so no
-//! HDF5 handle (opened without O_CLOEXEC, with a flock) can leak into a forked child.
+//! HDF5 handle (opened without O_CLOEXEC, with a flock) can leak into a forked child. The child
+//! guard and the service binaries are rfcl-testkit's.
 #![allow(dead_code)]
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
-use std::sync::{Arc, Mutex};
+use std::process::{Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
+
+use rfcl_testkit::child::{self, ChildGuard};
 
 use rfcl_proto::auth::{authenticated, AuthChannel, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
 use serde_json::Value;
+
+// Not every test that includes this module signals.
+#[allow(unused_imports)]
+pub use rfcl_testkit::child::signal;
 
 pub mod sim;
 
@@ -27,16 +32,17 @@ fn rfcl() -> &'static str {
     env!("CARGO_BIN_EXE_rfcl")
 }
 
-/// The services `rfcl train` starts must be built next to `rfcl`.
+/// The services `rfcl train` starts must be built next to `rfcl` (it runs them from its own
+/// directory): rfcl-testkit builds any that is missing.
 pub fn require_services() {
-    let dir = Path::new(rfcl()).parent().unwrap();
-    for name in ["curriculum-server", "learner", "actor"] {
-        assert!(
-            dir.join(name).is_file(),
-            "{} is not built: run `cargo build --release --workspace` (cargo nextest run \
-             --workspace builds every binary)",
-            dir.join(name).display()
-        );
+    let dir = std::fs::canonicalize(Path::new(rfcl()).parent().unwrap()).unwrap();
+    for path in [
+        rfcl_testkit::binaries::curriculum_server(),
+        rfcl_testkit::binaries::learner(),
+        rfcl_testkit::binaries::actor(),
+    ] {
+        let found = std::fs::canonicalize(path.parent().unwrap()).unwrap();
+        assert_eq!(found, dir, "{} is not next to rfcl", path.display());
     }
 }
 
@@ -68,10 +74,26 @@ pub fn generate_env_demos(env: &str, n: u32, out: &Path) -> PathBuf {
     out.to_path_buf()
 }
 
-/// A running `rfcl train`: stdout lines are collected, stderr goes to a file.
+/// `rfcl train` of the documented test config on 5 PointMaze demos generated in `dir`, with
+/// `overrides` (config overrides and flags) after the dataset's path; the run directory is
+/// `dir/run` (`Training::run_dir`), rfcl's stderr goes to `dir/<log>`.
+pub fn start_test_run(dir: &Path, overrides: &[String], log: &str) -> Training {
+    require_services();
+    let demos = generate_demos(dir);
+    let run_dir = dir.join("run");
+    let mut args = vec![
+        test_config().display().to_string(),
+        format!("train.dataset_path={}", demos.display()),
+    ];
+    args.extend_from_slice(overrides);
+    args.extend(["--run-dir".to_string(), run_dir.display().to_string()]);
+    Training::start(&args, &run_dir, &dir.join(log))
+}
+
+/// A running `rfcl train`: stdout lines are collected, stderr goes to a file. Dropped while it
+/// runs, it gets SIGTERM (rfcl stops its children then) and 60 s before SIGKILL.
 pub struct Training {
-    child: Option<Child>,
-    pub stdout: Arc<Mutex<Vec<String>>>,
+    child: ChildGuard,
     pub stderr_path: PathBuf,
     pub run_dir: PathBuf,
 }
@@ -80,32 +102,29 @@ impl Training {
     /// `rfcl train <args>`; `run_dir` is where the run lives (for the helpers).
     pub fn start(args: &[String], run_dir: &Path, log: &Path) -> Training {
         let stderr = std::fs::File::create(log).unwrap();
-        let mut child = Command::new(rfcl())
-            .arg("train")
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(stderr)
-            .spawn()
-            .unwrap();
-        let lines = Arc::new(Mutex::new(Vec::new()));
-        let sink = lines.clone();
-        let stdout = child.stdout.take().unwrap();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                sink.lock().unwrap().push(line);
-            }
-        });
+        let child = child::spawn_locked(
+            Command::new(rfcl())
+                .arg("train")
+                .args(args)
+                .stdin(Stdio::null())
+                .stdout(Stdio::piped())
+                .stderr(stderr),
+        )
+        .unwrap();
         Training {
-            child: Some(child),
-            stdout: lines,
+            child: ChildGuard::new("rfcl train", child).terminate_on_drop(Duration::from_secs(60)),
             stderr_path: log.to_path_buf(),
             run_dir: run_dir.to_path_buf(),
         }
     }
 
+    /// rfcl's stdout lines so far.
+    pub fn stdout_lines(&self) -> Vec<String> {
+        self.child.stdout_lines()
+    }
+
     pub fn pid(&self) -> u32 {
-        self.child.as_ref().unwrap().id()
+        self.child.id()
     }
 
     pub fn stderr(&self) -> String {
@@ -113,7 +132,7 @@ impl Training {
     }
 
     pub fn exited(&mut self) -> Option<ExitStatus> {
-        self.child.as_mut().unwrap().try_wait().unwrap()
+        self.child.try_wait().unwrap()
     }
 
     /// Waits for the exit; panics with rfcl's stderr after `limit`.
@@ -158,29 +177,6 @@ impl Training {
         let text = std::fs::read_to_string(&path)
             .unwrap_or_else(|e| panic!("{}: {e}\n{}", path.display(), self.stderr()));
         serde_json::from_str(&text).unwrap()
-    }
-}
-
-impl Drop for Training {
-    fn drop(&mut self) {
-        if let Some(mut child) = self.child.take() {
-            if child.try_wait().ok().flatten().is_none() {
-                // rfcl stops its children on SIGTERM.
-                signal(child.id(), rustix::process::Signal::TERM);
-                let until = Instant::now() + Duration::from_secs(60);
-                while child.try_wait().ok().flatten().is_none() && Instant::now() < until {
-                    std::thread::sleep(Duration::from_millis(100));
-                }
-                let _ = child.kill();
-                let _ = child.wait();
-            }
-        }
-    }
-}
-
-pub fn signal(pid: u32, signal: rustix::process::Signal) {
-    if let Some(pid) = rustix::process::Pid::from_raw(pid as i32) {
-        let _ = rustix::process::kill_process(pid, signal);
     }
 }
 
@@ -336,10 +332,15 @@ pub fn assert_reached(summary: &Value, bar: f64) {
     assert!(env_steps > 0 && updates > 0, "{summary:#}");
     assert!(summary["curriculum_episodes"].as_u64().unwrap() > 0);
     // What the curriculum saw reported and what the learner received agree, up to the episodes
-    // in flight (8 envs × 300 steps) and those whose leases were lost.
+    // in flight (8 envs × 300 steps), those whose leases were lost, and the steps a restarted
+    // learner rolled back to its checkpoint (the accounting below checks each bound exactly).
+    let rolled_back = summary["env_steps_accounting"]["learner_rolled_back"]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no learner_rolled_back in {summary:#}"));
     assert!(
-        curriculum_steps <= env_steps + 8 * 300 && curriculum_steps * 10 >= env_steps * 9,
-        "curriculum {curriculum_steps} vs learner {env_steps} env steps"
+        curriculum_steps <= env_steps + 8 * 300 + rolled_back
+            && curriculum_steps * 10 >= env_steps * 9,
+        "curriculum {curriculum_steps} vs learner {env_steps} env steps ({rolled_back} rolled back)"
     );
     assert_eq!(
         summary["env_steps_accounting"]["explained"], true,

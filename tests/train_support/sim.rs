@@ -5,15 +5,9 @@ use std::time::Duration;
 
 use super::*;
 
-/// The Python worker, built next to `rfcl` (by `cargo build --release --workspace`).
+/// The Python worker, next to `rfcl` (rfcl-testkit builds it when missing).
 pub fn sim_worker() -> PathBuf {
-    let path = Path::new(env!("CARGO_BIN_EXE_rfcl")).with_file_name("rfcl-sim-worker");
-    assert!(
-        path.is_file(),
-        "{} is not built: run `cargo build --release --workspace`",
-        path.display()
-    );
-    path
+    rfcl_testkit::binaries::sim_worker()
 }
 
 /// Children of `parent` named `rfcl-sim-worker` (comm is cut to 15 bytes).

@@ -210,6 +210,16 @@ pub struct TrainConfig {
     pub stage_1_only: bool,
 }
 
+/// Which stages a run goes through (spec 4): both (the default), the reverse curriculum only
+/// (`train.stage_1_only`) or the forward curriculum only (`train.stage_2_only`). See
+/// [`TrainConfig::stage_plan`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StagePlan {
+    Both,
+    ReverseOnly,
+    ForwardOnly,
+}
+
 /// Per-demo or global advance rule (spec 2.6).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]

@@ -4,7 +4,7 @@ use std::fmt::{self, Display};
 use std::ops::Bound::{self, Excluded, Included, Unbounded};
 
 use super::error::ConfigError;
-use super::{ForwardConfig, ReverseConfig, RunConfig};
+use super::{ForwardConfig, ReverseConfig, RunConfig, StagePlan, TrainConfig};
 
 impl RunConfig {
     /// Checks every value against its allowed range and the rules between options. Returns the
@@ -197,10 +197,26 @@ impl RunConfig {
                 },
             )?;
         }
+        train.stage_plan()?;
+        // The reference's two other stage-1 eval modes are not implemented: refused rather than
+        // accepted and ignored, so no run measures something else than it says.
         ensure(
-            !(train.stage_1_only && train.stage_2_only),
-            "train.stage_2_only",
-            || "cannot be combined with train.stage_1_only: true".into(),
+            train.use_orig_env_for_eval,
+            "train.use_orig_env_for_eval",
+            || {
+                "false (evals from demo states mirroring the curriculum) is not supported by rfcl; \
+             evaluations always run on the true task distribution (docs/ALGORITHM.md 2.9)"
+                    .into()
+            },
+        )?;
+        ensure(
+            !train.eval_start_of_demos,
+            "train.eval_start_of_demos",
+            || {
+                "true (evals from demo state 0) is not supported by rfcl; evaluations always run on \
+             the true task distribution (docs/ALGORITHM.md 2.9)"
+                .into()
+            },
         )?;
         ensure(
             !(train.load_as_online_buffer && train.load_as_offline_buffer),
@@ -254,6 +270,23 @@ impl RunConfig {
             )?;
         }
         Ok(())
+    }
+}
+
+impl TrainConfig {
+    /// `train.stage_1_only` and `train.stage_2_only` as the one choice they encode; both set is
+    /// an error naming the key. [`RunConfig::validate`] applies it; the curriculum's stage machine
+    /// starts from the plan it returns, so the rule lives here only.
+    pub fn stage_plan(&self) -> Result<StagePlan, ConfigError> {
+        match (self.stage_1_only, self.stage_2_only) {
+            (false, false) => Ok(StagePlan::Both),
+            (true, false) => Ok(StagePlan::ReverseOnly),
+            (false, true) => Ok(StagePlan::ForwardOnly),
+            (true, true) => Err(invalid(
+                "train.stage_2_only",
+                "cannot be combined with train.stage_1_only: true".into(),
+            )),
+        }
     }
 }
 

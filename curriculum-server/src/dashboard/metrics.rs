@@ -73,6 +73,12 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
     );
     counter(
         &mut r,
+        "oversized_requests",
+        "gRPC calls refused for a request over the server's message limit",
+        view.oversized_requests,
+    );
+    counter(
+        &mut r,
         "sim_worker_restarts",
         "Simulator worker processes restarted after a crash or hang (episode replayed)",
         view.sim_worker_restarts,

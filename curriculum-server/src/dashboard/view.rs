@@ -29,6 +29,9 @@ pub struct DashboardView {
     /// Calls refused UNAUTHENTICATED (no run token or a wrong one) since the server started.
     #[serde(default)]
     pub unauthenticated_calls: u64,
+    /// Calls refused OUT_OF_RANGE for a request over the server's message limit since it started.
+    #[serde(default)]
+    pub oversized_requests: u64,
     /// Actor ids dropped from `actors` after `service.forget_actors_after_s` without a call.
     #[serde(default)]
     pub actors_forgotten: u64,

@@ -1,12 +1,15 @@
-//! Shared by the cross-process tests: a small demo file, a config, and the server binary as a child.
+//! Shared by the cross-process tests: a small demo file, a config, and the server binary as a
+//! child. The generic parts (the child guard, the ready line, the HDF5 fork lock, the demo writer)
+//! are rfcl-testkit's.
 #![allow(dead_code)]
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, ExitStatus};
+use std::time::Duration;
 
-use rfcl_core::demo::{Demo, DemoSet, ResetArgs, StateLayout, SuccessSource};
 use rfcl_proto::auth::{authenticated, AuthChannel, Token};
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
+use rfcl_testkit::child::{self, ChildGuard};
+use rfcl_testkit::demos::SyntheticDemos;
 use tonic::transport::Channel;
 
 /// The run token of the test servers.
@@ -16,58 +19,23 @@ pub fn test_token() -> Token {
     Token::parse(TEST_TOKEN, "the tests").unwrap()
 }
 
-/// HDF5 opens files without O_CLOEXEC and holds a flock on them: a child forked while another test
-/// thread has a demo file open would inherit that lock for its whole life. Writing, reading and
-/// spawning take this lock so no fork happens while an HDF5 file is open in this process.
-pub static HDF5_FORK_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-pub fn hdf5_fork_guard() -> std::sync::MutexGuard<'static, ()> {
-    HDF5_FORK_LOCK.lock().unwrap_or_else(|p| p.into_inner())
-}
-
 pub const OBS: usize = 3;
 pub const ACT: usize = 2;
-pub const STATE: usize = 4;
+pub const STATE: usize = rfcl_testkit::demos::STATE_DIM;
 
 /// `n` demos of `t` actions each, succeeding on the last 5 steps; states encode (demo, step).
 pub fn write_demos(dir: &Path, n: usize, t: usize) -> PathBuf {
-    let demos = (0..n)
-        .map(|i| Demo {
-            episode_id: i as u64,
-            obs_dim: OBS,
-            action_dim: ACT,
-            state_dim: STATE,
-            obs: (0..(t + 1) * OBS).map(|k| k as f32).collect(),
-            actions: vec![0.1; t * ACT],
-            success: (0..t).map(|s| s + 5 >= t).collect(),
-            env_states: (0..=t)
-                .flat_map(|s| [i as f32, s as f32, 0.5, -0.5])
-                .collect(),
-            succeeded: true,
-            success_source: SuccessSource::Steps,
-            reset: ResetArgs {
-                seed: Some(100 + i as u64),
-                options: serde_json::json!({}),
-            },
-        })
-        .collect();
-    let path = dir.join("demos.h5");
-    let _guard = hdf5_fork_guard();
-    DemoSet {
-        path: path.clone(),
-        sidecar: None,
-        env_id: Some("PointMaze-v0".into()),
-        env_info: serde_json::json!({"env_id": "PointMaze-v0", "env_kwargs": {}, "max_episode_steps": 100}),
-        control_mode: None,
+    SyntheticDemos {
+        demos: n,
+        steps: t,
         obs_dim: OBS,
         action_dim: ACT,
-        state_dim: STATE,
-        state_layout: StateLayout::flat(STATE),
-        demos,
+        success_steps: 5,
+        max_episode_steps: 100,
+        obs: |_, k| k as f32,
+        action: |_, _| 0.1,
     }
-    .write(&path)
-    .expect("writing the test demos");
-    path
+    .write(dir)
 }
 
 pub fn write_config(dir: &Path, lease_timeout_s: f64) -> PathBuf {
@@ -84,9 +52,21 @@ pub fn write_config(dir: &Path, lease_timeout_s: f64) -> PathBuf {
     path
 }
 
+/// `curriculum-server ARGS` with the test token, run to completion (spawned under the HDF5 fork
+/// lock).
+pub fn run_server(args: &[&str], token: Option<&str>) -> std::process::Output {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_curriculum-server"));
+    cmd.args(args);
+    match token {
+        Some(token) => child::with_token(&mut cmd, token),
+        None => cmd.env_remove("RFCL_TOKEN").env_remove("RFCL_TOKEN_FILE"),
+    };
+    child::output(&mut cmd)
+}
+
 /// A running `curriculum-server` child; killed when dropped.
 pub struct ServerProcess {
-    pub child: Child,
+    pub child: ChildGuard,
     pub grpc: String,
     pub dashboard: String,
 }
@@ -114,39 +94,14 @@ impl ServerProcess {
 
     /// Starts the server with extra environment variables.
     pub fn start_with_env(args: &[&str], env: &[(&str, &Path)]) -> ServerProcess {
-        let guard = hdf5_fork_guard();
-        let mut child = Command::new(env!("CARGO_BIN_EXE_curriculum-server"))
-            .args(args)
-            .envs(env.iter().map(|(k, v)| (k, v)))
-            .env("RFCL_TOKEN", TEST_TOKEN)
-            .env_remove("RFCL_TOKEN_FILE")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("starting curriculum-server");
-        drop(guard);
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let grpc = line
-            .split("grpc=")
-            .nth(1)
-            .and_then(|s| s.split_whitespace().next());
-        let dashboard = line
-            .split("dashboard=")
-            .nth(1)
-            .map(|s| s.trim().to_string());
-        match (grpc, dashboard) {
-            (Some(g), Some(d)) => ServerProcess {
-                grpc: format!("http://{g}"),
-                dashboard: d,
-                child,
-            },
-            _ => {
-                let status = child.wait().unwrap();
-                panic!("curriculum-server did not start ({status}); its first line was {line:?}")
-            }
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_curriculum-server"));
+        cmd.args(args).envs(env.iter().map(|(k, v)| (k, v)));
+        let (child, ready) =
+            child::start_service("curriculum-server", child::with_token(&mut cmd, TEST_TOKEN));
+        ServerProcess {
+            grpc: ready.grpc_url(),
+            dashboard: ready.expect_field("dashboard").to_string(),
+            child,
         }
     }
 
@@ -164,25 +119,20 @@ impl ServerProcess {
             .expect("connecting to the curriculum server")
     }
 
+    /// `GET <dashboard>PATH` with curl (`api/state`, `metrics`): the body; panics when it fails.
+    pub fn dashboard_get(&self, path: &str) -> String {
+        let out =
+            child::output(Command::new("curl").args(["-sf", &format!("{}{path}", self.dashboard)]));
+        assert!(out.status.success(), "GET {path} failed ({})", out.status);
+        String::from_utf8(out.stdout).unwrap()
+    }
+
     pub fn sigkill(&mut self) {
-        self.child.kill().unwrap();
-        self.child.wait().unwrap();
+        self.child.sigkill();
     }
 
     /// SIGTERM and wait: the server writes its final snapshot.
-    pub fn sigterm(&mut self) -> std::process::ExitStatus {
-        Command::new("kill")
-            .arg("-TERM")
-            .arg(self.child.id().to_string())
-            .status()
-            .unwrap();
-        self.child.wait().unwrap()
-    }
-}
-
-impl Drop for ServerProcess {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+    pub fn sigterm(&mut self) -> ExitStatus {
+        self.child.sigterm(Duration::from_secs(60))
     }
 }

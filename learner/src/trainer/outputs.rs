@@ -3,11 +3,27 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use prost::bytes::Bytes;
 use rfcl_policy::{self as policy, PolicyDescription, PolicyShape};
-use rfcl_proto::v1;
+use tokio::sync::watch;
 
 use super::{Result, TrainError, Trainer};
 use crate::checkpoint::{self, Extras};
+
+/// One published policy version, as the trainer hands it to the transports (gRPC's WatchPolicy,
+/// the shared-memory publisher), which convert it to their own wire form.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PublishedPolicy {
+    pub version: u64,
+    /// The actor network in the policy format (`rfcl_policy::encode_vars`). `Bytes`: every
+    /// subscriber shares the one buffer.
+    pub safetensors: Bytes,
+    /// The learner's env-step count when this version was published.
+    pub learner_env_steps: u64,
+}
+
+/// The newest published policy: what the transports watch.
+pub type PolicyWatch = watch::Receiver<Arc<PublishedPolicy>>;
 
 impl Trainer {
     /// Publishes the current actor as `progress.policy_version` (an immutable `Arc`: readers
@@ -15,7 +31,7 @@ impl Trainer {
     pub(super) fn publish(&mut self) -> Result<()> {
         let start = Instant::now();
         self.check_weights("publish", &[("actor", self.sac.actor_vars())])?;
-        let weights = v1::PolicyWeights {
+        let weights = PublishedPolicy {
             version: self.progress.policy_version,
             safetensors: policy::encode_vars(self.sac.actor_vars())?.into(),
             learner_env_steps: self.progress.env_steps,

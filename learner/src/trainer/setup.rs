@@ -6,10 +6,9 @@ use std::time::Instant;
 use rfcl_core::config::RunConfig;
 use rfcl_core::demo::DemoSet;
 use rfcl_core::transition::RecordLayout;
-use rfcl_proto::v1;
 use tokio::sync::watch;
 
-use super::{LearnerStatus, Result, TrainError, Trainer, Window};
+use super::{LearnerStatus, PolicyWatch, PublishedPolicy, Result, TrainError, Trainer, Window};
 use crate::checkpoint::{self, Manifest, Progress};
 use crate::limiter::UtdLimiter;
 use crate::metrics::{MetricsCsv, Timings};
@@ -39,11 +38,7 @@ impl Trainer {
         demos: &DemoSet,
         run_dir: PathBuf,
         first_stage: &StageAnnouncement,
-    ) -> Result<(
-        Self,
-        watch::Receiver<Arc<v1::PolicyWeights>>,
-        Arc<LearnerStatus>,
-    )> {
+    ) -> Result<(Self, PolicyWatch, Arc<LearnerStatus>)> {
         let (d, a) = (demos.obs_dim, demos.action_dim);
         let sac = Sac::new(d, a, &cfg.sac, &cfg.network, cfg.seed)?;
         let action_scale = action_scale(&cfg, demos)?;
@@ -89,11 +84,7 @@ impl Trainer {
         demos: &DemoSet,
         run_dir: PathBuf,
         manifest: &Manifest,
-    ) -> Result<(
-        Self,
-        watch::Receiver<Arc<v1::PolicyWeights>>,
-        Arc<LearnerStatus>,
-    )> {
+    ) -> Result<(Self, PolicyWatch, Arc<LearnerStatus>)> {
         let (d, a) = (demos.obs_dim, demos.action_dim);
         let mut sac = Sac::new(d, a, &cfg.sac, &cfg.network, cfg.seed)?;
         let replay =
@@ -138,11 +129,7 @@ impl Trainer {
         progress: Progress,
         action_scale: Option<Vec<f32>>,
         resumed_at: Option<u64>,
-    ) -> Result<(
-        Self,
-        watch::Receiver<Arc<v1::PolicyWeights>>,
-        Arc<LearnerStatus>,
-    )> {
+    ) -> Result<(Self, PolicyWatch, Arc<LearnerStatus>)> {
         let csv_path = run_dir.join("metrics.csv");
         let csv = MetricsCsv::open(&csv_path, resumed_at).map_err(|source| TrainError::Io {
             what: "opening",
@@ -161,7 +148,7 @@ impl Trainer {
             .clone()
             .unwrap_or_else(|| cfg.env.env_id.clone());
         let status = Arc::new(LearnerStatus::default());
-        let (policy_tx, policy_rx) = watch::channel(Arc::new(v1::PolicyWeights {
+        let (policy_tx, policy_rx) = watch::channel(Arc::new(PublishedPolicy {
             version: progress.policy_version,
             safetensors: rfcl_policy::encode_vars(sac.actor_vars())?.into(),
             learner_env_steps: progress.env_steps,

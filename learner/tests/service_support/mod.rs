@@ -1,79 +1,40 @@
 //! Shared by the learner's cross-process tests (`service_*.rs`): small demo files and configs, the
-//! `curriculum-server` and `learner` binaries as children on 127.0.0.1:0, transition batches.
+//! `curriculum-server` and `learner` binaries as children on 127.0.0.1:0, transition batches. The
+//! generic parts (the child guard, the ready line, the HDF5 fork lock, the demo writer, finding
+//! and building the `curriculum-server` binary) are rfcl-testkit's.
 #![allow(dead_code)]
-use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Command, ExitStatus};
 use std::time::{Duration, Instant};
 
-use rfcl_core::demo::{Demo, DemoSet, ResetArgs, StateLayout, SuccessSource};
 use rfcl_core::transition::{RecordLayout, Transition};
 use rfcl_proto::auth::{authenticated, AuthChannel, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
+use rfcl_testkit::child::{self, ChildGuard, ReadyLine};
+use rfcl_testkit::demos::SyntheticDemos;
 use tonic::transport::Channel;
-
-/// HDF5 opens files without O_CLOEXEC and holds a flock on them: a child forked while another test
-/// thread has a demo file open would inherit that lock for its whole life. Writing demo files and
-/// spawning children take this lock.
-pub static HDF5_FORK_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-pub fn hdf5_fork_guard() -> std::sync::MutexGuard<'static, ()> {
-    HDF5_FORK_LOCK.lock().unwrap_or_else(|p| p.into_inner())
-}
 
 pub const OBS: usize = 4;
 pub const ACT: usize = 2;
-const STATE: usize = 4;
 /// Actions per demo.
 pub const DEMO_LEN: usize = 12;
 pub const DEMOS: usize = 3;
 
 /// `DEMOS` demos of `DEMO_LEN` steps, succeeding on the last 4 steps, actions in [-0.8, 0.8].
 pub fn write_demos(dir: &Path) -> PathBuf {
-    let t = DEMO_LEN;
-    let demos = (0..DEMOS)
-        .map(|i| Demo {
-            episode_id: i as u64,
-            obs_dim: OBS,
-            action_dim: ACT,
-            state_dim: STATE,
-            obs: (0..(t + 1) * OBS)
-                .map(|k| ((k + i) as f32 * 0.1).sin())
-                .collect(),
-            actions: (0..t * ACT)
-                .map(|k| 0.8 * ((k * 3 + i) as f32 * 0.7).cos())
-                .collect(),
-            success: (0..t).map(|s| s + 4 >= t).collect(),
-            env_states: (0..=t)
-                .flat_map(|s| [i as f32, s as f32, 0.5, -0.5])
-                .collect(),
-            succeeded: true,
-            success_source: SuccessSource::Steps,
-            reset: ResetArgs {
-                seed: Some(100 + i as u64),
-                options: serde_json::json!({}),
-            },
-        })
-        .collect();
-    let path = dir.join("demos.h5");
-    let _guard = hdf5_fork_guard();
-    DemoSet {
-        path: path.clone(),
-        sidecar: None,
-        env_id: Some("PointMaze-v0".into()),
-        env_info: serde_json::json!({"env_id": "PointMaze-v0", "env_kwargs": {}, "max_episode_steps": 50}),
-        control_mode: None,
+    SyntheticDemos {
+        demos: DEMOS,
+        steps: DEMO_LEN,
         obs_dim: OBS,
         action_dim: ACT,
-        state_dim: STATE,
-        state_layout: StateLayout::flat(STATE),
-        demos,
+        success_steps: 4,
+        max_episode_steps: 50,
+        obs: |i, k| ((k + i) as f32 * 0.1).sin(),
+        action: |i, k| 0.8 * ((k * 3 + i) as f32 * 0.7).cos(),
     }
-    .write(&path)
-    .expect("writing the test demos");
-    path
+    .write(dir)
 }
 
 /// The schedule of the test config: K = num_envs · steps_per_env = 4 env steps per iteration,
@@ -117,62 +78,23 @@ pub async fn connect(url: &str) -> AuthChannel {
     authenticated(channel, &Token::parse(TEST_TOKEN, "the tests").unwrap())
 }
 
-fn binary_next_to_learner(name: &str) -> PathBuf {
-    let path = Path::new(env!("CARGO_BIN_EXE_learner")).with_file_name(name);
-    assert!(
-        path.exists(),
-        "{} is missing: build it first with `cargo build -p rfcl-curriculum`",
-        path.display()
-    );
-    path
-}
-
-/// Reads the child's first stdout line; `Err` with its exit status and stderr when it exited.
-fn first_line(child: &mut Child) -> Result<String, String> {
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    if line.trim().is_empty() {
-        let status = child.wait().unwrap();
-        let mut err = String::new();
-        if let Some(mut stderr) = child.stderr.take() {
-            stderr.read_to_string(&mut err).unwrap();
-        }
-        return Err(format!("exited with {status}; stderr:\n{err}"));
-    }
-    Ok(line)
-}
-
-/// A running `curriculum-server` child; killed when dropped.
+/// A running `curriculum-server` child (built by rfcl-testkit when missing); killed when dropped.
 pub struct Curriculum {
-    pub child: Child,
+    pub child: ChildGuard,
     pub grpc: String,
 }
 
 impl Curriculum {
     pub fn start(config: &Path, demos: &Path, run_dir: &Path) -> Curriculum {
-        let guard = hdf5_fork_guard();
-        let mut child = Command::new(binary_next_to_learner("curriculum-server"))
-            .env("RFCL_TOKEN", TEST_TOKEN)
-            .env_remove("RFCL_TOKEN_FILE")
+        let mut cmd = Command::new(rfcl_testkit::binaries::curriculum_server());
+        child::with_token(&mut cmd, TEST_TOKEN)
             .args(["--config".as_ref(), config.as_os_str()])
             .args(["--demos".as_ref(), demos.as_os_str()])
-            .args(["--run-dir".as_ref(), run_dir.as_os_str()])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("starting curriculum-server");
-        drop(guard);
-        let line = first_line(&mut child).expect("curriculum-server did not start");
-        let grpc = line
-            .split("grpc=")
-            .nth(1)
-            .and_then(|s| s.split_whitespace().next())
-            .expect("curriculum-server's ready line names its gRPC address");
+            .args(["--run-dir".as_ref(), run_dir.as_os_str()]);
+        let (child, ready) = child::start_service("curriculum-server", &mut cmd);
         Curriculum {
             child,
-            grpc: format!("http://{grpc}"),
+            grpc: ready.grpc_url(),
         }
     }
 
@@ -222,36 +144,24 @@ impl Curriculum {
     }
 }
 
-impl Drop for Curriculum {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+/// A running `learner` child; killed when dropped. Its stderr is kept (`RFCL_TEST_LOGS=1` shows
+/// it as it comes).
+pub struct Learner {
+    pub child: ChildGuard,
+    pub grpc: String,
 }
 
-/// A running `learner` child; killed when dropped.
-pub struct Learner {
-    pub child: Child,
-    pub grpc: String,
-    /// Its stderr so far (logs and its final error line).
-    stderr: std::sync::Arc<std::sync::Mutex<String>>,
-    drain: Option<std::thread::JoinHandle<()>>,
+/// `learner ARGS` with the test token, not yet started.
+pub fn learner_command(args: &[&std::ffi::OsStr]) -> Command {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_learner"));
+    child::with_token(&mut cmd, TEST_TOKEN).args(args);
+    cmd
 }
 
 /// Runs the learner binary with `args` to completion (for start-up failures): exit status, stdout
 /// and stderr.
 pub fn run_learner(args: &[&std::ffi::OsStr]) -> (ExitStatus, String, String) {
-    let guard = hdf5_fork_guard();
-    let child = Command::new(env!("CARGO_BIN_EXE_learner"))
-        .env("RFCL_TOKEN", TEST_TOKEN)
-        .env_remove("RFCL_TOKEN_FILE")
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("starting learner");
-    drop(guard);
-    let out = child.wait_with_output().unwrap();
+    let out = child::output(&mut learner_command(args));
     (
         out.status,
         String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -267,79 +177,27 @@ impl Learner {
 
     /// Starts `learner --threads THREADS ARGS` and waits for its ready line.
     pub fn start_with_threads(threads: u32, args: &[&std::ffi::OsStr]) -> Learner {
-        let guard = hdf5_fork_guard();
-        let mut child = Command::new(env!("CARGO_BIN_EXE_learner"))
-            .env("RFCL_TOKEN", TEST_TOKEN)
-            .env_remove("RFCL_TOKEN_FILE")
-            .arg("--threads")
-            .arg(threads.to_string())
-            .args(args)
-            .env("OMP_WAIT_POLICY", "PASSIVE")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("starting learner");
-        drop(guard);
-        let line = match first_line(&mut child) {
-            Ok(line) => line,
-            Err(e) => panic!("learner did not start: {e}"),
-        };
-        assert!(
-            line.starts_with("learner ready grpc="),
-            "unexpected ready line {line:?}"
-        );
-        let grpc = line
-            .trim()
-            .trim_start_matches("learner ready grpc=")
-            .to_string();
-        // Keep stderr drained (its logs, kept for `stderr_text`) so the child never blocks on a
-        // full pipe. RFCL_TEST_LOGS=1 shows them.
-        let stderr = child.stderr.take().unwrap();
-        let text = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
-        let keep = text.clone();
-        let drain = std::thread::spawn(move || {
-            let show = std::env::var_os("RFCL_TEST_LOGS").is_some();
-            for line in BufReader::new(stderr).lines() {
-                match line {
-                    Ok(line) => {
-                        if show {
-                            eprintln!("learner: {line}");
-                        }
-                        let mut all = keep.lock().unwrap();
-                        all.push_str(&line);
-                        all.push('\n');
-                    }
-                    Err(_) => break,
-                }
-            }
-        });
-        Learner {
-            child,
-            grpc: format!("http://{grpc}"),
-            stderr: text,
-            drain: Some(drain),
-        }
+        let threads = threads.to_string();
+        let mut all: Vec<&std::ffi::OsStr> = vec!["--threads".as_ref(), threads.as_ref()];
+        all.extend_from_slice(args);
+        Self::start_command(&mut learner_command(&all)).0
     }
 
-    /// A learner child started by the caller, serving gRPC at `grpc` (`http://...`); its stderr
-    /// is not kept.
-    pub fn from_child(child: Child, grpc: String) -> Learner {
-        Learner {
-            child,
-            grpc,
-            stderr: Default::default(),
-            drain: None,
-        }
+    /// Starts `cmd` (a [`learner_command`]) and waits for its ready line.
+    pub fn start_command(cmd: &mut Command) -> (Learner, ReadyLine) {
+        let (child, ready) = child::start_service("learner", cmd.env("OMP_WAIT_POLICY", "PASSIVE"));
+        assert!(
+            ready.line.starts_with("learner ready grpc="),
+            "unexpected ready line {:?}",
+            ready.line
+        );
+        let grpc = ready.grpc_url();
+        (Learner { child, grpc }, ready)
     }
 
     /// The child's stderr so far; all of it once the child has exited.
     pub fn stderr_text(&mut self) -> String {
-        if self.child.try_wait().unwrap().is_some() {
-            if let Some(drain) = self.drain.take() {
-                let _ = drain.join();
-            }
-        }
-        self.stderr.lock().unwrap().clone()
+        self.child.stderr_text()
     }
 
     /// The usual arguments: config, curriculum, demos, run dir.
@@ -366,41 +224,17 @@ impl Learner {
     }
 
     pub fn sigkill(&mut self) {
-        self.child.kill().unwrap();
-        self.child.wait().unwrap();
+        self.child.sigkill();
     }
 
     /// SIGTERM and wait: the learner writes its final checkpoint and exports the policy.
     pub fn sigterm(&mut self) -> ExitStatus {
-        let status = Command::new("kill")
-            .arg("-TERM")
-            .arg(self.child.id().to_string())
-            .status()
-            .unwrap();
-        assert!(status.success());
-        self.wait(Duration::from_secs(60))
+        self.child.sigterm(Duration::from_secs(60))
     }
 
     /// Waits for the child to exit on its own.
     pub fn wait(&mut self, limit: Duration) -> ExitStatus {
-        let start = Instant::now();
-        loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
-                return status;
-            }
-            assert!(
-                start.elapsed() < limit,
-                "the learner did not exit within {limit:?}"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-}
-
-impl Drop for Learner {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        self.child.wait_within(limit)
     }
 }
 

@@ -16,8 +16,16 @@ use tokio::sync::{mpsc, watch};
 use tonic::transport::Endpoint;
 use tonic::{Code, Status};
 
-/// Policies and batches can be large (a 256×3 actor is about 300 KB; batches are bounded by
-/// `service.transition_batch`).
+/// The largest reply accepted from the curriculum server: its own limit on what it sends (a lease
+/// carries one env state, a few KiB).
+const CURRICULUM_REPLY_BYTES: usize = 16 << 20;
+/// The largest unary reply accepted from the learner (RunInfo with the resolved config, Health).
+const LEARNER_REPLY_BYTES: usize = 4 << 20;
+/// A PolicyWeights message beyond its safetensors bytes: version, env steps, framing.
+const POLICY_MESSAGE_MARGIN: usize = 64 << 10;
+/// What the policy stream accepts until the run's policy size is known
+/// ([`Learner::expect_policies_of`]), and the most a TransitionBatch may be encoded to (batches
+/// are bounded by `service.transition_batch`; the learner refuses, and counts, larger ones).
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
 /// One unary call may take this long before it counts as failed.
 const CALL_TIMEOUT: Duration = Duration::from_secs(15);
@@ -127,7 +135,7 @@ impl Curriculum {
     pub fn new(addr: &str, auth: &ClientAuth, retry_for: Duration) -> Result<Self> {
         Ok(Self {
             client: CurriculumClient::new(channel(addr, auth, true)?)
-                .max_decoding_message_size(MAX_MESSAGE_BYTES),
+                .max_decoding_message_size(CURRICULUM_REPLY_BYTES),
             peer: format!("curriculum server at {}", normalize_addr(addr)),
             retry_for,
         })
@@ -267,13 +275,23 @@ impl Learner {
         // Streams live for the whole run: no per-call timeout on their channel.
         let streams = LearnerClient::new(channel(addr, auth, false)?);
         Ok(Self {
-            client: unary.max_decoding_message_size(MAX_MESSAGE_BYTES),
+            client: unary.max_decoding_message_size(LEARNER_REPLY_BYTES),
             streams: streams
                 .max_decoding_message_size(MAX_MESSAGE_BYTES)
                 .max_encoding_message_size(MAX_MESSAGE_BYTES),
             peer: format!("learner at {}", normalize_addr(addr)),
             retry_for,
         })
+    }
+
+    /// Bounds the policy stream by the run's policy size `policy_bytes` (every version of a run
+    /// has the same size), with a 2x margin for a learner built with another safetensors
+    /// version: a learner cannot make this actor buffer much more than a policy's worth.
+    pub fn expect_policies_of(mut self, policy_bytes: usize) -> Self {
+        self.streams = self
+            .streams
+            .max_decoding_message_size(2 * policy_bytes + POLICY_MESSAGE_MARGIN);
+        self
     }
 
     pub async fn run_info(&self, actor_id: u32) -> Result<v1::RunInfo> {

@@ -18,6 +18,7 @@ mod shm;
 use std::process::ExitCode;
 use std::time::Duration;
 
+use anyhow::{anyhow, Context};
 use clap::Parser;
 use rfcl_proto::auth::ClientAuth;
 
@@ -56,38 +57,19 @@ struct Args {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    rfcl_runtime::init_logging();
     let args = Args::parse();
     if !(args.retry_for.is_finite() && args.retry_for > 0.0) {
-        eprintln!(
-            "error: --retry-for must be a positive number of seconds, got {}",
+        return rfcl_runtime::fail(anyhow!(
+            "--retry-for must be a positive number of seconds, got {}",
             args.retry_for
-        );
-        return ExitCode::FAILURE;
+        ));
     }
     let auth = match ClientAuth::from_env() {
         Ok(auth) => auth,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return ExitCode::FAILURE;
-        }
+        Err(e) => return rfcl_runtime::fail(e),
     };
     rfcl_actor::net::configure_inference_threads();
-    let runtime = match tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-    {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("error: starting the async runtime: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
     let opts = service::Options {
         connect: args.connect,
         curriculum: args.curriculum,
@@ -99,16 +81,13 @@ fn main() -> ExitCode {
         transport: args.transport,
     };
     let id = opts.id;
-    match runtime.block_on(service::run(opts, shutdown_signal())) {
-        Ok(stopped) => {
-            tracing::info!(actor = id, "stopped: {stopped:?}");
-            ExitCode::SUCCESS
-        }
-        Err(err) => {
-            eprintln!("error: actor {id}: {err:#}");
-            ExitCode::FAILURE
-        }
-    }
+    rfcl_runtime::run(rfcl_runtime::Flavor::CurrentThread, async move {
+        let stopped = service::run(opts, rfcl_runtime::shutdown_signal())
+            .await
+            .with_context(|| format!("actor {id}"))?;
+        tracing::info!(actor = id, "stopped: {stopped:?}");
+        Ok(())
+    })
 }
 
 /// An actor id from the host name and the process id: replicas started from one container spec
@@ -123,21 +102,4 @@ fn id_from_hostname() -> u32 {
         (h ^ b as u32).wrapping_mul(0x0100_0193)
     });
     (1 << 20) | (hash >> 12)
-}
-
-/// SIGINT or SIGTERM.
-async fn shutdown_signal() {
-    use tokio::signal::unix::{signal, SignalKind};
-    match signal(SignalKind::terminate()) {
-        Ok(mut term) => {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = term.recv() => {}
-            }
-        }
-        Err(e) => {
-            tracing::warn!("no SIGTERM handler ({e}); stopping on SIGINT only");
-            let _ = tokio::signal::ctrl_c().await;
-        }
-    }
 }

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use rfcl_actor::eval::{episodes_per_eval_actor, EvalSchedule};
-use rfcl_actor::net::policy_from_weights;
+use rfcl_actor::net::{policy_from_weights, published_policy_bytes};
 use rfcl_actor::policy::PolicyHandle;
 use rfcl_actor::rollout::{derive_seed, Rollout, RolloutSettings, StepOutput};
 use rfcl_actor::suite::make_env;
@@ -90,6 +90,10 @@ pub async fn run(
             cfg.env.env_id
         );
     }
+    let policy_bytes =
+        published_policy_bytes(&cfg, info.obs_dim as usize, info.action_dim as usize)
+            .context("sizing the run's policy")?;
+    let learner = learner.expect_policies_of(policy_bytes);
     let curriculum_addr = opts
         .curriculum
         .clone()

@@ -143,7 +143,7 @@ fn follow_policy(
                 continue;
             }
             Err(e) => {
-                tracing::warn!("{e}");
+                tracing::warn!("{:#}", anyhow!(e));
                 std::thread::sleep(Duration::from_millis(100));
                 continue;
             }

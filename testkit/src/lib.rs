@@ -1,0 +1,15 @@
+//! rfcl's cross-process test helpers: the one home of what the tests of every crate need to run
+//! the service binaries as children. It is a dev-dependency only (tests/crate_graph.rs checks
+//! that), and depends on no service crate: services meet over the wire, and so do their tests.
+//!
+//! * [`child`]: a child process killed and reaped when dropped ([`child::ChildGuard`]), its stderr
+//!   kept for failure messages, and a service's ready line (`<name> ready grpc=ADDR ...`) waited
+//!   for with a timeout and parsed ([`child::ReadyLine`]);
+//! * [`binaries`]: the service binaries next to the test executable, built with cargo (same
+//!   profile) when one is missing;
+//! * [`hdf5`]: the lock that keeps forks away from open HDF5 files;
+//! * [`demos`]: small synthetic demo files whose states say which demo and step they are.
+pub mod binaries;
+pub mod child;
+pub mod demos;
+pub mod hdf5;
