@@ -4,7 +4,9 @@ use std::collections::BTreeSet;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use rfcl_core::config::{resolve_file, to_yaml, RunConfig, Suite};
+use rfcl_core::config::{
+    resolve_file, to_yaml, CurriculumMethod, RunConfig, StartStepSampler, Suite,
+};
 
 fn configs_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs")
@@ -41,13 +43,18 @@ fn load(relative: &str) -> RunConfig {
     resolve_file(&path, &[]).unwrap_or_else(|e| panic!("{e}"))
 }
 
-/// The task presets (outside `configs/base/`) as (file, config). `*_test.yml` files are not presets
-/// of spec 8 but small configs for the project's own whole-run tests (`configs/pointmaze_test.yml`);
+/// The task presets (outside `configs/base/` and `configs/ablations/`) as (file, config).
+/// `*_test.yml` files are not presets of spec 8 but small configs for the project's own whole-run
+/// tests (`configs/pointmaze_test.yml`), and the ablation rows change a small config on purpose;
 /// they still resolve, validate and round-trip like every file.
 fn task_presets() -> Vec<(String, RunConfig)> {
     preset_files()
         .into_iter()
-        .filter(|file| !file.starts_with("base") && !file.to_string_lossy().ends_with("_test.yml"))
+        .filter(|file| {
+            !file.starts_with("base")
+                && !file.starts_with("ablations")
+                && !file.to_string_lossy().ends_with("_test.yml")
+        })
         .map(|file| {
             let name = file.to_str().unwrap().to_owned();
             let config = load(&name);
@@ -345,4 +352,55 @@ fn pointmaze_presets_carry_spec_7_5_and_8_3() {
         assert_eq!(c.forward.num_seeds, 34);
         assert_eq!(c.sac.eval_steps, 1000);
     }
+}
+
+/// The stage-1 ablation rows (`configs/ablations/`): each is `pointmaze_test.yml` run to the end of
+/// stage 1, with exactly its variant's keys changed and nothing else, so the table compares the
+/// variants and only them.
+#[test]
+fn stage_1_ablation_rows_change_only_their_variant() {
+    let base = load("pointmaze_test.yml");
+    let row = |name: &str, variant: &dyn Fn(&mut RunConfig)| {
+        let mut c = base.clone();
+        c.name = name.into();
+        c.train.stage_1_only = true;
+        c.train.steps = 1_000_000;
+        c.service.stop_at_eval_success = None;
+        variant(&mut c);
+        c
+    };
+    let rows: [(&str, RunConfig); 4] = [
+        (
+            "ablations/pointmaze_stage1_per_demo.yml",
+            row("ablation_stage1_per_demo", &|_| {}),
+        ),
+        (
+            "ablations/pointmaze_stage1_per_demo_no_time_limit.yml",
+            row("ablation_stage1_per_demo_no_time_limit", &|c| {
+                c.reverse.demo_horizon_to_max_steps_ratio = 0.0
+            }),
+        ),
+        (
+            "ablations/pointmaze_stage1_global.yml",
+            row("ablation_stage1_global", &|c| {
+                c.reverse.curriculum_method = CurriculumMethod::Global
+            }),
+        ),
+        (
+            "ablations/pointmaze_stage1_uniform.yml",
+            row("ablation_stage1_uniform", &|c| {
+                c.reverse.start_step_sampler = StartStepSampler::Uniform
+            }),
+        ),
+    ];
+    for (file, expected) in &rows {
+        assert_eq!(&load(file), expected, "{file}");
+    }
+    let files: BTreeSet<String> = preset_files()
+        .into_iter()
+        .filter(|f| f.starts_with("ablations"))
+        .map(|f| f.to_string_lossy().into_owned())
+        .collect();
+    let listed: BTreeSet<String> = rows.iter().map(|(f, _)| f.to_string()).collect();
+    assert_eq!(files, listed, "every ablation row is checked here");
 }
