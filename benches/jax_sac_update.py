@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The SAC update of `cargo bench -p rfcl-learner --bench sac_update`, in JAX/Flax, jitted.
 
-Issue 5's yardstick: the Rust learner should run at least 1.5x the updates/s of this
+The yardstick: the Rust learner should run at least 1.5x the updates/s of this
 implementation of the same update on the same machine, measured side by side
 (benches/compare_sac.sh runs both). It implements exactly what learner/src/sac.rs does per
 training iteration (spec 5.2, 5.3), with the reference implementation's JAX idioms:
