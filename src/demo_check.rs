@@ -9,6 +9,8 @@ use std::process::{Command, ExitStatus, Stdio};
 
 use anyhow::{bail, Context, Result};
 
+use crate::ReplayArgs;
+
 /// The hidden subcommand that reads a demo file in this process (`rfcl demos load FILE`).
 pub const LOAD: [&str; 2] = ["demos", "load"];
 
@@ -16,7 +18,7 @@ pub const LOAD: [&str; 2] = ["demos", "load"];
 /// reader: a file the reader refuses cleanly is left to the services, which report it with their
 /// own context.
 pub fn refuse_if_it_crashes_the_reader(file: &Path) -> Result<()> {
-    let status = child(file)
+    let status = child(file, &ReplayArgs::default())
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .status()
@@ -25,18 +27,24 @@ pub fn refuse_if_it_crashes_the_reader(file: &Path) -> Result<()> {
 }
 
 /// `rfcl demos inspect`: the child prints the summary; a crash becomes an error naming the file.
-pub fn inspect(file: &Path) -> Result<ExitStatus> {
-    let status = child(file)
+pub fn inspect(file: &Path, replay: &ReplayArgs) -> Result<ExitStatus> {
+    let status = child(file, replay)
         .status()
         .with_context(|| format!("reading demo file {} in a child process", file.display()))?;
     crashed(file, status)?;
     Ok(status)
 }
 
-fn child(file: &Path) -> Command {
+fn child(file: &Path, replay: &ReplayArgs) -> Command {
     let exe = std::env::current_exe().unwrap_or_else(|_| "rfcl".into());
     let mut cmd = Command::new(exe);
     cmd.args(LOAD).arg(file);
+    if replay.replay {
+        cmd.arg("--replay");
+    }
+    if let Some(config) = &replay.config {
+        cmd.arg("--config").arg(config);
+    }
     cmd
 }
 

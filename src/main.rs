@@ -9,6 +9,8 @@
 mod bench_e2e;
 mod bench_faults;
 mod demo_check;
+mod demos_replay;
+mod demos_select;
 mod demos_sim;
 mod demos_suites;
 mod eval;
@@ -135,16 +137,52 @@ struct LearnerBenchArgs {
     dims: Vec<usize>,
 }
 
+/// `rfcl demos inspect --replay`: the per-demo quality check.
+#[derive(clap::Args, Clone, Default)]
+pub struct ReplayArgs {
+    /// Check each demo in its simulator: every state is a valid reset state, its actions replayed
+    /// from its first state reproduce its states and success flags, and its final state is a
+    /// success. Exits 1 when a demo fails.
+    #[arg(long)]
+    pub replay: bool,
+    /// The run config whose env replays the demos (needed for every env but PointMaze).
+    #[arg(long, requires = "replay")]
+    pub config: Option<PathBuf>,
+}
+
 #[derive(Subcommand)]
 enum DemosCommand {
     /// Print episodes, lengths, dims, success flags and the state layout of a demo file.
     Inspect {
         /// ManiSkill-format trajectory file (.h5, with its .json sidecar).
         file: PathBuf,
+        #[command(flatten)]
+        replay: ReplayArgs,
+    },
+    /// Write the demo file without the demos a run found stalled (its dashboard's flags), or
+    /// with only the best K (not stalled, solved, fastest frontier first), and say why each
+    /// dropped demo went. The run may be running (its curriculum server is asked) or finished
+    /// (its summary.json is read).
+    Select {
+        /// The demo file the run trained on.
+        file: PathBuf,
+        /// The run's directory (`rfcl train --run-dir`, by default runs/<name>).
+        #[arg(long)]
+        run: PathBuf,
+        /// Output .h5 file (a .json sidecar is written beside it).
+        #[arg(long)]
+        out: PathBuf,
+        /// Keep at most this many demos, the best first.
+        #[arg(long)]
+        best: Option<usize>,
     },
     /// `inspect` in this process, without the child that guards against libhdf5 crashing.
     #[command(hide = true)]
-    Load { file: PathBuf },
+    Load {
+        file: PathBuf,
+        #[command(flatten)]
+        replay: ReplayArgs,
+    },
     /// Generate successful demos with their simulator states.
     Generate {
         /// Env: pointmaze, a ManiSkill3 env id such as PickCube-v1, or metaworld/<task> such as
@@ -243,19 +281,34 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Demos {
-            command: DemosCommand::Inspect { file },
+            command: DemosCommand::Inspect { file, replay },
         } => {
-            let status = demo_check::inspect(&file)?;
+            let status = demo_check::inspect(&file, &replay)?;
             Ok(ExitCode::from(
                 status.code().unwrap_or(1).clamp(0, 255) as u8
             ))
         }
         Command::Demos {
-            command: DemosCommand::Load { file },
+            command:
+                DemosCommand::Select {
+                    file,
+                    run,
+                    out,
+                    best,
+                },
+        } => demos_select::select(&file, &run, &out, best).map(|()| ExitCode::SUCCESS),
+        Command::Demos {
+            command: DemosCommand::Load { file, replay },
         } => {
             let demos = rfcl_core::demo::DemoSet::load(&file)?;
             print!("{}", demos.summary());
-            Ok(ExitCode::SUCCESS)
+            if !replay.replay {
+                return Ok(ExitCode::SUCCESS);
+            }
+            match demos_replay::check(&demos, replay.config.as_deref())? {
+                true => Ok(ExitCode::SUCCESS),
+                false => Ok(ExitCode::FAILURE),
+            }
         }
         Command::Demos {
             command:

@@ -199,6 +199,15 @@ fn generated_pointmaze_demos_inspect_cleanly() {
         text.contains("episodes: 3 (3 successful)") && text.contains("obs 7, action 2"),
         "{text}"
     );
+    // The quality check replays each demo in PointMaze: all three pass.
+    let out = rfcl(&["demos", "inspect", file.to_str().unwrap(), "--replay"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    assert_eq!(text.matches(": ok (").count(), 3, "{text}");
+    assert!(
+        text.contains("3 of 3 demos pass the replay check"),
+        "{text}"
+    );
 }
 
 #[test]

@@ -10,6 +10,8 @@
 //! * [`net`]: the learner's policy network ([`net::PolicyNet`], from rfcl-policy) as a [`Policy`].
 //! * [`rollout`]: K envs stepped from reset leases into transitions and episode reports (spec 2.4,
 //!   2.5, 5.4-5.6), pure logic shared by the `actor` binary and `rfcl eval`.
+//! * [`replay`]: a demo's quality check with no run: its states are valid reset states and its
+//!   actions replay into its states and success (`rfcl demos inspect --replay`).
 //! * [`eval`]: when eval actors evaluate and how many episodes (spec 5.7).
 //! * [`retry`]: backoff with a deadline for lost connections.
 //! * [`bench`]: `rfcl bench actor`, the actor's overhead over a bare env loop.
@@ -24,6 +26,7 @@ pub mod net;
 pub mod pointmaze;
 pub mod policy;
 pub mod python;
+pub mod replay;
 pub mod retry;
 pub mod rollout;
 pub mod suite;

@@ -43,7 +43,8 @@ fn load(relative: &str) -> RunConfig {
     resolve_file(&path, &[]).unwrap_or_else(|e| panic!("{e}"))
 }
 
-/// The task presets (outside `configs/base/` and `configs/ablations/`) as (file, config).
+/// The task presets (outside `configs/base/`, `configs/ablations/` and `configs/baselines/`) as
+/// (file, config).
 /// `*_test.yml` files are not presets of spec 8 but small configs for the project's own whole-run
 /// tests (`configs/pointmaze_test.yml`), and the ablation rows change a small config on purpose;
 /// they still resolve, validate and round-trip like every file.
@@ -53,6 +54,7 @@ fn task_presets() -> Vec<(String, RunConfig)> {
         .filter(|file| {
             !file.starts_with("base")
                 && !file.starts_with("ablations")
+                && !file.starts_with("baselines")
                 && !file.to_string_lossy().ends_with("_test.yml")
         })
         .map(|file| {
@@ -403,4 +405,20 @@ fn stage_1_ablation_rows_change_only_their_variant() {
         .collect();
     let listed: BTreeSet<String> = rows.iter().map(|(f, _)| f.to_string()).collect();
     assert_eq!(files, listed, "every ablation row is checked here");
+}
+
+/// The RLPD baseline (`configs/baselines/`) is `pointmaze_test.yml` with only the mode changed, so
+/// a side-by-side run compares the methods and nothing else.
+#[test]
+fn the_rlpd_baseline_changes_only_the_mode() {
+    let mut expected = load("pointmaze_test.yml");
+    expected.name = "pointmaze_test_rlpd".into();
+    expected.train.mode = rfcl_core::config::TrainMode::Rlpd;
+    assert_eq!(load("baselines/pointmaze_test_rlpd.yml"), expected);
+    assert_eq!(
+        expected.train.stage_plan().unwrap(),
+        rfcl_core::config::StagePlan::ForwardOnly
+    );
+    let forward = expected.forward_curriculum();
+    assert!(!forward.include_demo_starts && forward.staleness_coef == 0.0);
 }

@@ -307,6 +307,14 @@ fn rules_between_options_are_enforced() {
             "cannot be combined with train.stage_1_only",
         ),
         (
+            |c| {
+                c.train.mode = rfcl_core::config::TrainMode::Rlpd;
+                c.train.stage_1_only = true;
+            },
+            "train.stage_1_only",
+            "cannot be combined with train.mode: rlpd",
+        ),
+        (
             |c| c.train.use_orig_env_for_eval = false,
             "train.use_orig_env_for_eval",
             "is not supported by rfcl",

@@ -7,6 +7,7 @@ use rfcl_core::config::RunConfig;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::difficulty::Difficulty;
 use crate::forward::{Forward, LevelSource};
 use crate::reverse::{DemoMeta, ReportEffect, Reverse};
 use crate::stage::{Stage, StageChange, StageMachine};
@@ -83,6 +84,9 @@ pub struct Curriculum {
     reverse: Reverse,
     forward: Forward,
     stages: StageMachine,
+    /// Per-demo stage-1 history (docs/ALGORITHM.md 2.10); absent in older snapshots.
+    #[serde(default)]
+    difficulty: Difficulty,
     /// H: the env horizon, the time limit of every stage-2 episode.
     horizon: u32,
     rng: ChaCha8Rng,
@@ -94,13 +98,14 @@ impl Curriculum {
         let horizon = config.env.max_episode_steps;
         Ok(Self {
             reverse: Reverse::new(config.reverse.clone(), demos, horizon)?,
-            forward: Forward::new(config.forward.clone(), demos)?,
+            forward: Forward::new(config.forward_curriculum(), demos)?,
             stages: StageMachine::new(
                 config
                     .train
                     .stage_plan()
                     .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))?,
             ),
+            difficulty: Difficulty::default(),
             horizon,
             rng: ChaCha8Rng::seed_from_u64(config.seed),
         })
@@ -132,7 +137,8 @@ impl Curriculum {
     }
 
     /// Applies the outcome of an episode run from `assignment`; `env_steps` is the run's env-step
-    /// count now, recorded if this report ends stage 1 (spec 2.7, checked after every report).
+    /// count now (this episode's included), recorded if this report ends stage 1 (spec 2.7,
+    /// checked after every report) and in the per-demo history.
     pub fn report(
         &mut self,
         assignment: &Assignment,
@@ -151,6 +157,13 @@ impl Curriculum {
                 let effect = self
                     .reverse
                     .report(demo, start_index, outcome.success_at_end)?;
+                self.difficulty.record(
+                    demo,
+                    outcome.success_at_end,
+                    &effect,
+                    self.reverse.demos(),
+                    env_steps,
+                );
                 let stage_change = if self.reverse.stage_1_done() {
                     self.stages.end_stage_1(env_steps)
                 } else {
@@ -181,6 +194,10 @@ impl Curriculum {
 
     pub fn reverse(&self) -> &Reverse {
         &self.reverse
+    }
+
+    pub fn difficulty(&self) -> &Difficulty {
+        &self.difficulty
     }
 
     pub fn forward(&self) -> &Forward {

@@ -5,11 +5,13 @@
 //! * [`forward`]: stage 2, the seed-based forward curriculum (spec 3).
 //! * [`stage`]: the stage machine and its epoch (spec 2.7, 4).
 //! * [`stop`]: the run's stop rule on evaluation success.
+//! * [`difficulty`]: per-demo stage-1 history and stall flags (rfcl's addition, section 2.10).
 //! * [`curriculum`]: all of them behind `acquire` / `report`, with one seeded random stream;
 //!   serialisable for snapshots.
 #![forbid(unsafe_code)]
 
 pub mod curriculum;
+pub mod difficulty;
 pub mod forward;
 pub mod rank;
 pub mod reverse;
@@ -19,6 +21,7 @@ pub mod stop;
 pub use curriculum::{
     Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, EpisodeOutcome, ReportOutcome,
 };
+pub use difficulty::{DemoAssessment, DemoRecord, Difficulty};
 pub use forward::{Forward, Level, LevelSource};
 pub use reverse::{DemoMeta, DemoProgress, ReportEffect, Reverse, StartChoice};
 pub use stage::{Stage, StageChange, StageMachine, StageStatus};

@@ -417,6 +417,7 @@ mod tests {
             state_dim: 1,
             states: vec![vec![0.0, 1.0, 2.0, 3.0]],
             reset: vec![ResetArgs::default()],
+            episode_ids: vec![0],
         };
         Shared::new(state, cfg, demos, Guard::new(&token()))
     }

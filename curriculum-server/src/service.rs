@@ -60,12 +60,25 @@ impl Shared {
     pub fn view(&self) -> DashboardView {
         let now = unix_now();
         let state = self.lock();
-        let mut view = state.view(&self.cfg.name, &self.cfg.env.env_id, now);
+        let mut view = state.view(
+            &self.cfg.name,
+            &self.cfg.env.env_id,
+            now,
+            self.cfg.service.stall_after_env_steps,
+        );
         view.unauthenticated_calls = self.guard.refused();
         view.snapshot_failures = self.snapshot_failures.load(Ordering::Relaxed);
         view.oversized_requests = self.oversized_requests.load(Ordering::Relaxed);
+        for bar in &mut view.demos {
+            if let Some(&id) = self.demos.episode_ids.get(bar.demo as usize) {
+                bar.episode_id = id;
+            }
+        }
         if self.cfg.env.suite == Suite::Pointmaze {
             view.maze = Some(state.maze_view(&self.demos));
+            for bar in &mut view.demos {
+                bar.difficulty.cell = self.demos.maze_cell(bar.demo as usize, bar.t as usize);
+            }
         }
         view
     }

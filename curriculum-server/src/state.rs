@@ -35,6 +35,8 @@ pub struct DemoResets {
     /// Per demo, the flat states [S_i_total, state_dim].
     pub states: Vec<Vec<f32>>,
     pub reset: Vec<ResetArgs>,
+    /// Per demo, its episode id in the demo file (the run may have shuffled or picked a subset).
+    pub episode_ids: Vec<u64>,
 }
 
 impl DemoResets {
@@ -43,11 +45,21 @@ impl DemoResets {
             state_dim: demos.state_dim,
             states: demos.demos.iter().map(|d| d.env_states.clone()).collect(),
             reset: demos.demos.iter().map(|d| d.reset.clone()).collect(),
+            episode_ids: demos.demos.iter().map(|d| d.episode_id).collect(),
         }
     }
 
     pub(crate) fn state(&self, demo: usize, index: usize) -> Vec<f32> {
         self.states[demo][index * self.state_dim..(index + 1) * self.state_dim].to_vec()
+    }
+
+    /// The PointMaze cell `[row, col]` of a demo's state (spec 7.5: states start with the point's
+    /// `(x, y)`).
+    pub fn maze_cell(&self, demo: usize, index: usize) -> Option<[u32; 2]> {
+        let start = index.checked_mul(self.state_dim)?;
+        let s = self.states.get(demo)?.get(start..start + 2)?;
+        let (row, col) = rfcl_core::maze::cell_at([s[0], s[1]])?;
+        Some([row as u32, col as u32])
     }
 }
 
@@ -478,6 +490,7 @@ mod tests {
             // 3 actions, so 4 states.
             states: vec![vec![0.0, 1.0, 2.0, 3.0]],
             reset: vec![ResetArgs::default()],
+            episode_ids: vec![0],
         };
         let mut state = ServerState::new(Curriculum::new(&cfg, &metas).unwrap(), 0.0);
         let mut report = |actor_id: u32, sim_restarts: u64| {
@@ -514,7 +527,7 @@ mod tests {
         report(2, 5);
         assert_eq!(state.stats.actors[&1].sim_restarts, 3 + 4 + 1);
         assert_eq!(state.stats.actors[&2].sim_restarts, 5);
-        let view = state.view("run", "PointMaze-v0", 1.0);
+        let view = state.view("run", "PointMaze-v0", 1.0, 50_000);
         assert_eq!(view.sim_worker_restarts, 13);
         let rows: Vec<(u32, u64)> = view
             .actors
@@ -538,6 +551,7 @@ mod tests {
             state_dim: 1,
             states: vec![vec![0.0, 1.0, 2.0, 3.0]],
             reset: vec![ResetArgs::default()],
+            episode_ids: vec![0],
         };
         let state = ServerState::new(Curriculum::new(&cfg, &metas).unwrap(), 0.0);
         (cfg, demos, state)
@@ -601,7 +615,7 @@ mod tests {
         );
         // Nothing moved: no env steps, no episode, no actor row for the stranger, no heartbeat.
         assert_eq!((&state.stats, &state.curriculum), (&before.0, &before.1));
-        let view = state.view("run", "PointMaze-v0", 2.0);
+        let view = state.view("run", "PointMaze-v0", 2.0, 50_000);
         assert_eq!(
             (
                 view.refused_reports.over_time_limit,
@@ -668,7 +682,7 @@ mod tests {
         // Once actor 3's lease expired, it goes too.
         state.leases.expire(611.0, 120.0);
         assert_eq!(state.forget_idle_actors(611.0, 600.0), 1);
-        let view = state.view("run", "PointMaze-v0", 611.0);
+        let view = state.view("run", "PointMaze-v0", 611.0, 50_000);
         assert_eq!(view.actors_forgotten, 2);
         assert_eq!(
             view.actors.iter().map(|a| a.actor_id).collect::<Vec<_>>(),

@@ -5,8 +5,8 @@ use std::collections::BTreeMap;
 use rfcl_core::maze::Cell;
 
 use crate::dashboard::{
-    ActorRow, DashboardView, DemoBar, EvalPoint, LevelRow, MazeCell, MazeSnapshot, MazeView,
-    RefusedReports,
+    ActorRow, DashboardView, DemoBar, DemoDifficulty, EvalPoint, LevelRow, MazeCell, MazeSnapshot,
+    MazeView, RefusedReports,
 };
 use crate::state::{DemoResets, EvalAggregate, ServerState};
 use crate::{LevelSource, Stage};
@@ -78,21 +78,54 @@ impl ServerState {
         }
     }
 
-    /// The dashboard's view of this state.
-    pub fn view(&self, run_name: &str, env_id: &str, now: f64) -> DashboardView {
+    /// The dashboard's view of this state; a stage-1 demo stalls after `stall_after_env_steps`
+    /// env steps without a move (docs/ALGORITHM.md 2.10).
+    pub fn view(
+        &self,
+        run_name: &str,
+        env_id: &str,
+        now: f64,
+        stall_after_env_steps: u64,
+    ) -> DashboardView {
         let reverse = self.curriculum.reverse();
         let forward = self.curriculum.forward();
         let status = self.stage_status();
+        let history = self.curriculum.difficulty();
+        // After stage 1 the histories stand as they were when it ended.
+        let stage_1_now = status.stage_1_end_env_steps.unwrap_or(self.stats.env_steps);
+        let assessments = history.assess(reverse.demos(), stage_1_now, stall_after_env_steps);
         let demos = reverse
             .demos()
             .iter()
+            .zip(assessments)
             .enumerate()
-            .map(|(i, d)| DemoBar {
-                demo: i as u32,
-                t: d.start_step as u32,
-                states: d.num_states as u32,
-                frontier_success_rate: d.frontier_success_rate(),
-                solved: d.solved,
+            .map(|(i, (d, a))| {
+                let record = history.demos().get(i).cloned().unwrap_or_default();
+                DemoBar {
+                    demo: i as u32,
+                    // Known only to the service: `Shared::view` fills it in.
+                    episode_id: 0,
+                    t: d.start_step as u32,
+                    states: d.num_states as u32,
+                    frontier_success_rate: d.frontier_success_rate(),
+                    solved: d.solved,
+                    difficulty: DemoDifficulty {
+                        episodes: record.episodes,
+                        episode_share: a.episode_share,
+                        frontier_episodes: record.frontier_episodes,
+                        frontier_success_rate: a.frontier_success_rate,
+                        speed: a.speed,
+                        env_steps_since_move: a.env_steps_since_move,
+                        solved_env_steps: record.solved_env_steps,
+                        stalled: a.stalled,
+                        cell: None,
+                        frontier: record
+                            .frontier
+                            .iter()
+                            .map(|&(steps, t)| [steps, u64::from(t)])
+                            .collect(),
+                    },
+                }
             })
             .collect();
         let levels = if status.stage == Stage::Forward {
@@ -225,6 +258,7 @@ mod tests {
             state_dim: 5,
             states: vec![vec![7.0, 1.0, 0.0, 0.0, 0.0, 6.0, 1.0, 0.0, 0.0, 0.0]],
             reset: vec![ResetArgs::default()],
+            episode_ids: vec![0],
         };
         let view = state.maze_view(&demos);
         let versions: Vec<u64> = view.snapshots.iter().map(|s| s.policy_version).collect();

@@ -160,3 +160,37 @@ fn failures_hold_the_frontier() {
         vec![1.0 / 3.0; 3]
     );
 }
+
+#[test]
+fn rlpd_mode_hands_out_only_seeds_uniformly_and_reports_move_nothing() {
+    let mut config = config();
+    config.train.mode = rfcl_core::config::TrainMode::Rlpd;
+    let mut curriculum = Curriculum::new(&config, &demos(2)).unwrap();
+    // No demo-start levels: the 10 seeds only, each equally likely.
+    let levels = curriculum.forward().levels();
+    assert_eq!(levels.len(), 10);
+    assert!(levels
+        .iter()
+        .all(|l| matches!(l.source, LevelSource::Seed(_))));
+    let mut counts = [0u32; 10];
+    for env_steps in 1..=2000 {
+        let lease = curriculum.acquire().unwrap();
+        let AssignmentKind::Level { level, .. } = lease.kind else {
+            panic!("RLPD starts with levels only: {lease:?}");
+        };
+        counts[level] += 1;
+        // A success would raise a level's score under RFCL; under RLPD it moves nothing.
+        curriculum.report(&lease, SUCCESS, env_steps).unwrap();
+        assert!(curriculum
+            .forward()
+            .probabilities()
+            .iter()
+            .all(|&p| (p - 0.1).abs() < 1e-12));
+    }
+    // 2000 uniform draws over 10 seeds: each near 200 (binomial sd 13.4; 5 sd either side).
+    assert!(
+        counts.iter().all(|&c| (133..=267).contains(&c)),
+        "{counts:?}"
+    );
+    assert_eq!(curriculum.stages().stage(), Stage::Forward);
+}

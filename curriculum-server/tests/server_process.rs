@@ -155,7 +155,12 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     let mut restarted = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
     let mut client = restarted.client().await;
     let resumed = state_view(&mut client).await;
-    let snap_view = snap.view("ctest", "PointMaze-v0", rfcl_curriculum::state::unix_now());
+    let snap_view = snap.view(
+        "ctest",
+        "PointMaze-v0",
+        rfcl_curriculum::state::unix_now(),
+        50_000,
+    );
     assert_eq!(curriculum_part(&resumed), curriculum_part(&snap_view));
 
     // The restarted server hands out exactly what the snapshot's state hands out in-process.

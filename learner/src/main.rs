@@ -21,7 +21,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use rfcl_core::config::{Device, RunConfig};
+use rfcl_core::config::{Device, RunConfig, StagePlan};
 use rfcl_core::demo::DemoSet;
 use rfcl_learner::checkpoint::{self, Manifest};
 use rfcl_learner::service::{self, LearnerService, RunDescription};
@@ -196,7 +196,9 @@ async fn run(args: Args) -> Result<()> {
             resumed
         }
         None => {
-            if first_stage.epoch > 0 && !cfg.train.stage_2_only {
+            if first_stage.epoch > 0
+                && !matches!(cfg.train.stage_plan(), Ok(StagePlan::ForwardOnly))
+            {
                 tracing::warn!(
                     "the curriculum server is already at stage epoch {}: a fresh learner starts there with the demos as its offline buffer",
                     first_stage.epoch

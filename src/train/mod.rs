@@ -750,15 +750,23 @@ impl Session {
     }
 
     /// Why a run that ended by itself ended: the curriculum server's stop rule (the evals reached
-    /// `service.stop_at_eval_success`), or the budget.
+    /// `service.stop_at_eval_success`), the end of stage 1 under `train.stage_1_only`, or the
+    /// budget.
     async fn ended_by_itself(&mut self) -> Ending {
         self.poll_state().await;
-        match self
+        let stage_1_ended = self
+            .last_view
+            .as_ref()
+            .is_some_and(|v| v.stage_1_env_steps.is_some());
+        if self
             .evals
             .reached(self.prep.cfg.service.stop_at_eval_success)
         {
-            true => Ending::EvalSuccess,
-            false => Ending::Budget,
+            Ending::EvalSuccess
+        } else if self.prep.cfg.train.stage_1_only && stage_1_ended {
+            Ending::Stage1Done
+        } else {
+            Ending::Budget
         }
     }
 
@@ -954,10 +962,11 @@ impl Session {
                 self.prep.run_dir.display()
             ),
             Ending::Failed => unreachable!("a failure returned above"),
-            Ending::Budget | Ending::EvalSuccess => eprintln!(
+            Ending::Budget | Ending::EvalSuccess | Ending::Stage1Done => eprintln!(
                 "run finished ({}); summary in {}",
                 match ending {
                     Ending::Budget => "step budget used",
+                    Ending::Stage1Done => "stage 1 ended under train.stage_1_only",
                     _ => "eval success reached",
                 },
                 self.prep.run_dir.join("summary.json").display()

@@ -4,7 +4,7 @@
 //! curriculum server's state and the wall clock.
 use std::collections::BTreeMap;
 
-use rfcl_curriculum::dashboard::{DashboardView, EvalPoint, RefusedReports};
+use rfcl_curriculum::dashboard::{DashboardView, DemoBar, EvalPoint, RefusedReports};
 use serde::{Deserialize, Serialize};
 
 /// Evals whose running mean decides an early stop (`service.stop_at_eval_success`; the curriculum
@@ -235,6 +235,9 @@ pub struct Milestone {
 pub enum Ending {
     /// The learner used the step budget (`train.steps`) and exited.
     Budget,
+    /// Stage 1 ended and the config stops there (`train.stage_1_only`).
+    #[serde(rename = "stage_1_done")]
+    Stage1Done,
     /// The running mean of the last evals reached `service.stop_at_eval_success`.
     EvalSuccess,
     /// Ctrl-C or SIGTERM: resume with `--resume`.
@@ -304,6 +307,10 @@ pub struct Summary {
     #[serde(default)]
     pub env_steps_accounting: StepAccounting,
     pub evals: Vec<CompleteEval>,
+    /// Per demo: where its reverse-curriculum frontier ended and how hard it was (speed, stall
+    /// flag; docs/ALGORITHM.md 2.10). `rfcl demos select` reads it.
+    #[serde(default)]
+    pub demos: Vec<DemoBar>,
 }
 
 /// The two services count env steps independently: the learner the transition records it
@@ -479,6 +486,7 @@ pub fn summarize(
         refused_batches: learner.refused_batches,
         env_steps_accounting,
         evals: evals.evals(),
+        demos: view.demos.clone(),
     }
 }
 

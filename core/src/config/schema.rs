@@ -204,10 +204,23 @@ pub struct TrainConfig {
     pub use_orig_env_for_eval: bool,
     /// Stage-1 evals start at demo state 0 (spec 2.9).
     pub eval_start_of_demos: bool,
+    /// `rfcl` (the method) or `rlpd`: the RLPD baseline in the same service, with no state resets
+    /// (docs/ALGORITHM.md 4, "RLPD mode").
+    pub mode: TrainMode,
     /// Skip stage 1 and keep the demos as the offline buffer ("forward-only").
     pub stage_2_only: bool,
     /// Stop after stage 1.
     pub stage_1_only: bool,
+}
+
+/// What a run trains: RFCL, or the RLPD baseline (no resets to demo states; demos only as the
+/// offline half of every batch).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrainMode {
+    #[default]
+    Rfcl,
+    Rlpd,
 }
 
 /// Which stages a run goes through (spec 4): both (the default), the reverse curriculum only
@@ -358,6 +371,9 @@ pub struct ServiceConfig {
     /// An actor that has not called for this many seconds is dropped from the per-actor table
     /// (counted), so the table stays bounded however many actor ids come and go.
     pub forget_actors_after_s: f64,
+    /// A stage-1 demo whose frontier has not moved for this many env steps while another demo's
+    /// did is flagged as stalled (docs/ALGORITHM.md 2.10); the flag changes nothing in training.
+    pub stall_after_env_steps: u64,
     /// Transitions per shared-memory / gRPC batch.
     pub transition_batch: u32,
     /// Warn when an actor's policy lags the learner's by more than this many versions.
@@ -553,6 +569,7 @@ impl Default for TrainConfig {
             load_as_online_buffer: false,
             use_orig_env_for_eval: true,
             eval_start_of_demos: false,
+            mode: TrainMode::Rfcl,
             stage_2_only: false,
             stage_1_only: false,
         }
@@ -608,6 +625,7 @@ impl Default for ServiceConfig {
             snapshot_every_reports: 500,
             snapshot_every_s: 15.0,
             forget_actors_after_s: 600.0,
+            stall_after_env_steps: 50_000,
             transition_batch: 64,
             max_policy_lag: 50,
             curriculum_port: 0,

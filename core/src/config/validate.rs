@@ -4,7 +4,10 @@ use std::fmt::{self, Display};
 use std::ops::Bound::{self, Excluded, Included, Unbounded};
 
 use super::error::ConfigError;
-use super::{ForwardConfig, ReverseConfig, RunConfig, StagePlan, TrainConfig};
+use super::{
+    ForwardConfig, LevelMix, ReverseConfig, RunConfig, ScoreTransform, StagePlan, TrainConfig,
+    TrainMode,
+};
 
 impl RunConfig {
     /// Checks every value against its allowed range and the rules between options. Returns the
@@ -248,6 +251,11 @@ impl RunConfig {
             service.forget_actors_after_s,
             POSITIVE,
         )?;
+        at_least(
+            "service.stall_after_env_steps",
+            service.stall_after_env_steps,
+            1,
+        )?;
         at_least("service.transition_batch", service.transition_batch, 1)?;
         let ports = [
             ("service.curriculum_port", service.curriculum_port),
@@ -273,11 +281,40 @@ impl RunConfig {
     }
 }
 
+impl RunConfig {
+    /// The forward curriculum as the run draws it. Under `train.mode: rlpd` every seed is equally
+    /// likely (constant scores, no staleness term) and the demos' first states are not levels, so
+    /// episodes start from the task's own initial distribution (docs/ALGORITHM.md 4, "RLPD mode").
+    pub fn forward_curriculum(&self) -> ForwardConfig {
+        match self.train.mode {
+            TrainMode::Rfcl => self.forward.clone(),
+            TrainMode::Rlpd => ForwardConfig {
+                score_transform: ScoreTransform::Constant,
+                staleness_transform: ScoreTransform::Constant,
+                staleness_coef: 0.0,
+                mix: LevelMix::Reference,
+                include_demo_starts: false,
+                ..self.forward.clone()
+            },
+        }
+    }
+}
+
 impl TrainConfig {
     /// `train.stage_1_only` and `train.stage_2_only` as the one choice they encode; both set is
     /// an error naming the key. [`RunConfig::validate`] applies it; the curriculum's stage machine
     /// starts from the plan it returns, so the rule lives here only.
     pub fn stage_plan(&self) -> Result<StagePlan, ConfigError> {
+        if self.mode == TrainMode::Rlpd {
+            return match self.stage_1_only {
+                // RLPD has no reverse curriculum: it is the forward stage with uniform seeds.
+                false => Ok(StagePlan::ForwardOnly),
+                true => Err(invalid(
+                    "train.stage_1_only",
+                    "cannot be combined with train.mode: rlpd (RLPD has no stage 1)".into(),
+                )),
+            };
+        }
         match (self.stage_1_only, self.stage_2_only) {
             (false, false) => Ok(StagePlan::Both),
             (true, false) => Ok(StagePlan::ReverseOnly),

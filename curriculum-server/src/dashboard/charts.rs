@@ -213,7 +213,16 @@ pub fn level_probabilities_svg(levels: &[LevelRow]) -> String {
 /// One line of the progress chart: its legend, its colour and what it plots of each sample.
 type Series = (&'static str, RGBColor, fn(&ProgressPoint) -> f64);
 
-/// Curriculum progress and success rates against env steps.
+/// The progress chart's series and their colours, for the legend the page prints under the chart
+/// (drawn inside the plot, a legend covers the curves).
+pub const PROGRESS_LEGEND: [(&str, &str); 4] = [
+    ("start step frac (avg t_i/(S_i-1))", "#0000ff"),
+    ("demos solved", "#00ff00"),
+    ("train success", "#ff00ff"),
+    ("eval success at end", "#ff0000"),
+];
+
+/// Curriculum progress and success rates against env steps (the page prints [`PROGRESS_LEGEND`]).
 pub fn progress_svg(history: &[ProgressPoint], evals: &[EvalPoint]) -> String {
     let mut svg = String::new();
     let result = (|| -> Result<(), Box<dyn std::error::Error>> {
@@ -233,35 +242,74 @@ pub fn progress_svg(history: &[ProgressPoint], evals: &[EvalPoint]) -> String {
             .build_cartesian_2d(0f64..max_x, 0f64..1.02f64)?;
         chart.configure_mesh().x_desc("env steps").draw()?;
         let series: [Series; 3] = [
-            ("start step frac (avg t_i/(S_i-1))", BLUE, |p| {
-                p.start_step_frac_avg
-            }),
-            ("demos solved", GREEN, |p| p.solved_frac),
-            ("train success", MAGENTA, |p| p.train_success_rate),
+            (PROGRESS_LEGEND[0].0, BLUE, |p| p.start_step_frac_avg),
+            (PROGRESS_LEGEND[1].0, GREEN, |p| p.solved_frac),
+            (PROGRESS_LEGEND[2].0, MAGENTA, |p| p.train_success_rate),
         ];
-        for (label, color, f) in series {
-            chart
-                .draw_series(LineSeries::new(
-                    history.iter().map(|p| (p.env_steps as f64, f(p))),
-                    color.stroke_width(2),
-                ))?
-                .label(label)
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
-                });
+        for (_, color, f) in series {
+            chart.draw_series(LineSeries::new(
+                history.iter().map(|p| (p.env_steps as f64, f(p))),
+                color.stroke_width(2),
+            ))?;
         }
+        chart.draw_series(LineSeries::new(
+            evals.iter().map(|e| (e.env_steps as f64, e.success_at_end)),
+            RED.stroke_width(2),
+        ))?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => chart_err(e),
+    }
+}
+
+/// The colour of demo `i` in the per-demo frontier chart and its legend.
+pub fn demo_color(i: usize) -> RGBColor {
+    let c = Palette99::pick(i).to_rgba();
+    RGBColor(c.0, c.1, c.2)
+}
+
+/// Per-demo frontier over env steps: for each demo the part reached, 1 - t_i/(S_i-1), as a step
+/// line from 0 to `now` env steps (the page prints the legend, [`demo_color`]). A stalled demo's
+/// line is flat at the end while the others climb (docs/ALGORITHM.md 2.10).
+pub fn demo_frontiers_svg(demos: &[DemoBar], now: u64) -> String {
+    let mut svg = String::new();
+    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
+        let root = SVGBackend::with_string(&mut svg, (CHART_W, 240)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let max_x = demos
+            .iter()
+            .flat_map(|d| d.difficulty.frontier.iter().map(|p| p[0]))
+            .chain([now])
+            .max()
+            .unwrap_or(1)
+            .max(1) as f64;
+        let mut chart = ChartBuilder::on(&root)
+            .margin(8)
+            .x_label_area_size(28)
+            .y_label_area_size(40)
+            .build_cartesian_2d(0f64..max_x, 0f64..1.02f64)?;
         chart
-            .draw_series(LineSeries::new(
-                evals.iter().map(|e| (e.env_steps as f64, e.success_at_end)),
-                RED.stroke_width(2),
-            ))?
-            .label("eval success at end")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], RED.stroke_width(2)));
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
+            .configure_mesh()
+            .x_desc("env steps")
+            .y_desc("part reached")
             .draw()?;
+        for (i, d) in demos.iter().enumerate() {
+            let last = d.states.saturating_sub(1).max(1) as f64;
+            let reached = |t: u64| 1.0 - t as f64 / last;
+            let mut points = vec![(0.0, 0.0)];
+            let mut level = 0.0;
+            for &[steps, t] in &d.difficulty.frontier {
+                points.push((steps as f64, level));
+                level = reached(t);
+                points.push((steps as f64, level));
+            }
+            points.push((max_x, level));
+            let width = if d.difficulty.stalled { 4 } else { 2 };
+            chart.draw_series(LineSeries::new(points, demo_color(i).stroke_width(width)))?;
+        }
         root.present()?;
         Ok(())
     })();

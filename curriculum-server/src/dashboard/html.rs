@@ -1,7 +1,10 @@
 //! The dashboard page: plain HTML with the charts inlined, refreshed by a meta tag.
 use std::fmt::Write as _;
 
-use super::charts::{demo_bars_svg, level_probabilities_svg, maze_heatmap_svg, progress_svg};
+use super::charts::{
+    demo_bars_svg, demo_color, demo_frontiers_svg, level_probabilities_svg, maze_heatmap_svg,
+    progress_svg, PROGRESS_LEGEND,
+};
 use super::view::{DashboardView, LevelRow};
 
 fn esc(s: &str) -> String {
@@ -62,20 +65,68 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
     }
     h.push_str("<h2>Reverse curriculum: demos</h2>\n");
     h.push_str(&demo_bars_svg(&view.demos));
-    h.push_str("\n<table id=\"demos\"><tr><th>demo</th><th>t_i</th><th>S_i</th><th>t_i / S_i</th><th>frontier success</th><th>solved</th></tr>\n");
+    h.push_str("<h3>Frontiers over env steps</h3>\n");
+    h.push_str(&demo_frontiers_svg(
+        &view.demos,
+        view.stage_1_env_steps.unwrap_or(view.env_steps),
+    ));
+    h.push_str("\n<p class=\"legend\">");
+    for (i, d) in view.demos.iter().enumerate() {
+        let c = demo_color(i);
+        let _ = write!(
+            h,
+            "<span style=\"color:#{:02x}{:02x}{:02x}\">━━</span> demo {}{} &nbsp; ",
+            c.0,
+            c.1,
+            c.2,
+            d.demo,
+            if d.difficulty.stalled {
+                " (stalled)"
+            } else {
+                ""
+            }
+        );
+    }
+    h.push_str("</p>\n");
+    h.push_str("\n<table id=\"demos\"><tr><th>demo (episode id)</th><th>t_i</th><th>S_i</th><th>t_i / S_i</th><th>frontier success (last m)</th><th>solved</th><th>states / 10k steps</th><th>steps since it moved</th><th>frontier episodes, success</th><th>share of episodes</th><th>flag</th></tr>\n");
     for d in &view.demos {
+        let x = &d.difficulty;
+        let flag = match (x.stalled, x.cell) {
+            (true, Some([row, col])) => format!(
+                "<span class=err>stalled at state {} (cell {row}, {col})</span>",
+                d.t
+            ),
+            (true, None) => format!("<span class=err>stalled at state {}</span>", d.t),
+            (false, _) => String::new(),
+        };
         let _ = writeln!(
             h,
-            "<tr class=\"demo-bar\"><td>{}</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.2}</td><td>{}</td></tr>",
+            "<tr class=\"demo-bar\"><td>{} ({})</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.2}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{}, {:.2}</td><td>{:.2}</td><td>{}</td></tr>",
             d.demo,
+            d.episode_id,
             d.t,
             d.states,
             d.t as f64 / d.states.max(1) as f64,
             d.frontier_success_rate,
-            if d.solved { "<span class=solved>✔</span>" } else { "" }
+            if d.solved { "<span class=solved>✔</span>" } else { "" },
+            x.speed,
+            x.env_steps_since_move,
+            x.frontier_episodes,
+            x.frontier_success_rate,
+            x.episode_share,
+            flag,
         );
     }
-    h.push_str("</table>\n");
+    let stalled = view.demos.iter().filter(|d| d.difficulty.stalled).count();
+    if stalled > 0 {
+        let _ = writeln!(
+            h,
+            "</table>\n<p class=err>{stalled} demo(s) stalled: their frontier has not moved for a while \
+             as others advanced. <code>rfcl demos select</code> writes the demo file without them.</p>"
+        );
+    } else {
+        h.push_str("</table>\n");
+    }
     if let Some(maze) = &view.maze {
         h.push_str("<h2>PointMaze: eval success per start cell</h2>\n<div id=\"maze-heatmap\">");
         h.push_str(&maze_heatmap_svg(maze));
@@ -83,6 +134,14 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
     }
     h.push_str("<h2>Progress</h2>\n");
     h.push_str(&progress_svg(&view.history, &view.evals));
+    h.push_str("\n<p class=\"legend\">");
+    for (label, colour) in PROGRESS_LEGEND {
+        let _ = write!(
+            h,
+            "<span style=\"color:{colour}\">━━</span> {label} &nbsp; "
+        );
+    }
+    h.push_str("</p>\n");
     if !view.levels.is_empty() {
         h.push_str("\n<h2>Forward curriculum: level sampling</h2>\n");
         h.push_str(&level_probabilities_svg(&view.levels));

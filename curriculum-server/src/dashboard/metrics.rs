@@ -124,13 +124,39 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
     let start =
         Family::<Vec<(String, String)>, Gauge<f64, std::sync::atomic::AtomicU64>>::default();
     let solved = Family::<Vec<(String, String)>, Gauge>::default();
+    let stalled = Family::<Vec<(String, String)>, Gauge>::default();
+    let since_move = Family::<Vec<(String, String)>, Gauge>::default();
+    let speed =
+        Family::<Vec<(String, String)>, Gauge<f64, std::sync::atomic::AtomicU64>>::default();
     for d in &view.demos {
         let labels = vec![("demo".to_string(), d.demo.to_string())];
         start
             .get_or_create(&labels)
             .set(d.t as f64 / (d.states.max(2) - 1) as f64);
         solved.get_or_create(&labels).set(d.solved as i64);
+        stalled
+            .get_or_create(&labels)
+            .set(d.difficulty.stalled as i64);
+        since_move
+            .get_or_create(&labels)
+            .set(d.difficulty.env_steps_since_move.min(i64::MAX as u64) as i64);
+        speed.get_or_create(&labels).set(d.difficulty.speed);
     }
+    r.register(
+        "demo_stalled",
+        "1 when the demo's frontier stalled while others advanced (docs/ALGORITHM.md 2.10)",
+        stalled,
+    );
+    r.register(
+        "demo_env_steps_since_move",
+        "Env steps since the demo's frontier last moved",
+        since_move,
+    );
+    r.register(
+        "demo_frontier_speed",
+        "Demo states the frontier moved back per 10,000 env steps",
+        speed,
+    );
     r.register(
         "demo_start_step_fraction",
         "t_i / (S_i - 1) per demo",

@@ -13,12 +13,14 @@ pub mod html;
 pub mod metrics;
 pub mod view;
 
-pub use charts::{demo_bars_svg, level_probabilities_svg, maze_heatmap_svg, progress_svg};
+pub use charts::{
+    demo_bars_svg, demo_frontiers_svg, level_probabilities_svg, maze_heatmap_svg, progress_svg,
+};
 pub use html::render_html;
 pub use metrics::metrics_text;
 pub use view::{
-    ActorRow, DashboardView, DemoBar, EvalPoint, LevelRow, MazeCell, MazeSnapshot, MazeView,
-    ProgressPoint, RefusedReports,
+    ActorRow, DashboardView, DemoBar, DemoDifficulty, EvalPoint, LevelRow, MazeCell, MazeSnapshot,
+    MazeView, ProgressPoint, RefusedReports,
 };
 
 #[cfg(test)]

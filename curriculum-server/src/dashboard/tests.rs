@@ -9,17 +9,43 @@ fn view() -> DashboardView {
         demos: vec![
             DemoBar {
                 demo: 0,
+                episode_id: 3,
                 t: 10,
                 states: 41,
                 frontier_success_rate: 0.5,
                 solved: false,
+                difficulty: DemoDifficulty {
+                    episodes: 30,
+                    episode_share: 0.75,
+                    frontier_episodes: 12,
+                    frontier_success_rate: 0.25,
+                    speed: 1.5,
+                    env_steps_since_move: 61_000,
+                    solved_env_steps: None,
+                    stalled: true,
+                    cell: Some([4, 9]),
+                    frontier: vec![[20_000, 32], [45_000, 10]],
+                },
             },
             DemoBar {
                 demo: 1,
+                episode_id: 7,
                 t: 0,
                 states: 30,
                 frontier_success_rate: 1.0,
                 solved: true,
+                difficulty: DemoDifficulty {
+                    episodes: 10,
+                    episode_share: 0.25,
+                    frontier_episodes: 8,
+                    frontier_success_rate: 0.875,
+                    speed: 4.0,
+                    env_steps_since_move: 0,
+                    solved_env_steps: Some(72_000),
+                    stalled: false,
+                    cell: Some([1, 2]),
+                    frontier: vec![[30_000, 21], [50_000, 13], [60_000, 5], [66_000, 0]],
+                },
             },
         ],
         history: vec![
@@ -40,8 +66,25 @@ fn view() -> DashboardView {
                 train_success_rate: 0.4,
             },
         ],
+        env_steps: 106_000,
         ..Default::default()
     }
+}
+
+#[test]
+fn the_page_flags_stalled_demos_with_where_they_stall_and_charts_each_frontier() {
+    let html = render_html(&view(), 2);
+    assert!(html.contains("stalled at state 10 (cell 4, 9)"), "{html}");
+    assert_eq!(html.matches("stalled at state").count(), 1, "{html}");
+    assert!(html.contains("1 demo(s) stalled"), "{html}");
+    assert!(html.contains("demo 0 (stalled)") && html.contains("demo 1 &nbsp;"));
+    // The frontier chart: one step line per demo, the stalled one drawn thicker.
+    let svg = demo_frontiers_svg(&view().demos, 106_000);
+    assert_eq!(svg.matches("stroke-width=\"4\"").count(), 1, "{svg}");
+    assert_eq!(svg.matches("stroke-width=\"2\"").count(), 1, "{svg}");
+    // The progress chart's legend is under it, not over the curves.
+    assert!(html.contains("eval success at end"));
+    assert!(!progress_svg(&view().history, &[]).contains("eval success at end"));
 }
 
 #[test]
@@ -116,6 +159,14 @@ fn metrics_use_rfcl_names_and_labels() {
         text.contains("rfcl_curriculum_demo_solved{demo=\"1\"} 1"),
         "{text}"
     );
+    for line in [
+        "rfcl_curriculum_demo_stalled{demo=\"0\"} 1",
+        "rfcl_curriculum_demo_stalled{demo=\"1\"} 0",
+        "rfcl_curriculum_demo_env_steps_since_move{demo=\"0\"} 61000",
+        "rfcl_curriculum_demo_frontier_speed{demo=\"1\"} 4.0",
+    ] {
+        assert!(text.contains(line), "{line} missing from {text}");
+    }
     assert!(text.ends_with("# EOF\n"));
 }
 

@@ -111,6 +111,10 @@ impl RefusedReports {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DemoBar {
     pub demo: u32,
+    /// The demo's episode id in the demo file (the run may have shuffled or picked a subset).
+    /// Absent from older servers' JSON.
+    #[serde(default)]
+    pub episode_id: u64,
     /// Current start step t_i.
     pub t: u32,
     /// States kept, S_i.
@@ -118,6 +122,34 @@ pub struct DemoBar {
     /// Fraction of successes in the demo's frontier FIFO.
     pub frontier_success_rate: f64,
     pub solved: bool,
+    /// How hard this demo is (docs/ALGORITHM.md 2.10). Absent from older servers' JSON.
+    #[serde(default)]
+    pub difficulty: DemoDifficulty,
+}
+
+/// One demo's stage-1 difficulty: its frontier's history and speed, how episodes from it fare, and
+/// whether it has stalled while the others advance (docs/ALGORITHM.md 2.10).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct DemoDifficulty {
+    /// Stage-1 episodes started from this demo, and their share of all stage-1 episodes.
+    pub episodes: u64,
+    pub episode_share: f64,
+    /// Episodes started at the frontier t_i, and the success rate of all of them.
+    pub frontier_episodes: u64,
+    pub frontier_success_rate: f64,
+    /// States the frontier moved back per 10,000 env steps (until solved).
+    pub speed: f64,
+    /// Env steps since the frontier last moved (0 once solved).
+    pub env_steps_since_move: u64,
+    /// Env steps when the demo became solved.
+    pub solved_env_steps: Option<u64>,
+    /// Flagged: not solved, and no move for `service.stall_after_env_steps` env steps while
+    /// another demo's frontier moved. It stalls at its current t_i.
+    pub stalled: bool,
+    /// On PointMaze, the maze cell `[row, col]` of the state at t_i (where it stalls, if it does).
+    pub cell: Option<[u32; 2]>,
+    /// `[env steps, t_i]` after each move of the frontier, oldest first.
+    pub frontier: Vec<[u64; 2]>,
 }
 
 /// One forward-curriculum level (spec 3).
