@@ -83,6 +83,10 @@ async fn chromium_renders_the_demo_bars() {
     );
     assert!(dom.contains("<svg"), "charts are inline SVG");
     assert!(dom.contains("demo 2"), "the bar chart labels the demos");
+    assert!(
+        dom.contains("Frontiers over env steps") && dom.contains("eval success at end"),
+        "the per-demo frontier chart and the progress legend under its chart"
+    );
     assert!(dom.contains("stage <b>1</b>"));
     assert!(!dom.contains("chart failed"));
 
