@@ -103,6 +103,7 @@ for m in methods:
 import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import matplotlib.ticker
 fig, ax = plt.subplots(figsize=(7, 3.6))
 for m, colour in zip(methods, ["tab:blue", "tab:orange"]):
     for s in seeds:
@@ -111,6 +112,7 @@ for m, colour in zip(methods, ["tab:blue", "tab:orange"]):
     xs = [x for x, v in zip(grid, means[m]) if v is not None]
     ax.plot(xs, [v for v in means[m] if v is not None], color=colour, linewidth=2.5,
             label=f"{m.upper()} (mean of {len(seeds)} seeds)")
+ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:.0f}k"))
 ax.set_xlabel("env steps")
 ax.set_ylabel("eval success at the end")
 ax.set_ylim(-0.02, 1.02)
