@@ -68,9 +68,16 @@ async fn state_view(
 
 /// The parts of the view that are curriculum state (not wall-clock dependent).
 fn curriculum_part(v: &DashboardView) -> serde_json::Value {
+    // A demo's episode id and maze cell come from the demo file, which the running server adds to
+    // its view and a snapshot does not hold: they are not curriculum state.
+    let mut demos = v.demos.clone();
+    for d in &mut demos {
+        d.episode_id = 0;
+        d.difficulty.cell = None;
+    }
     serde_json::json!({
         "stage": v.stage, "epoch": v.stage_epoch, "env_steps": v.env_steps, "episodes": v.episodes,
-        "demos": v.demos, "levels": v.levels, "stage_1_env_steps": v.stage_1_env_steps,
+        "demos": demos, "levels": v.levels, "stage_1_env_steps": v.stage_1_env_steps,
     })
 }
 
