@@ -429,6 +429,14 @@ pub fn summarize(
     wall_s: f64,
     ending: Ending,
 ) -> Summary {
+    // The last Health poll can predate the learner's last steps (it exits when the run ends),
+    // while each eval carries the learner's count when it published the evaluated policy: the
+    // learner received at least that many.
+    let mut learner = learner;
+    if let Some(last) = evals.last() {
+        learner.env_steps = learner.env_steps.max(last.env_steps);
+        learner.policy_version = learner.policy_version.max(last.policy_version);
+    }
     let env_steps_accounting = StepAccounting::new(
         learner.env_steps,
         view.env_steps,
@@ -730,6 +738,26 @@ mod tests {
         assert_eq!((a.learner_minus_curriculum, a.in_flight_at_most), (200, 20));
         assert_eq!(a.unreported_episodes, 10);
         assert!(!a.explained);
+        // A Health poll older than the last eval's policy: the learner had received at least the
+        // env steps that policy carries, so no milestone lies beyond the summary's env steps.
+        let stale = LearnerCounters {
+            env_steps: 2950,
+            ..learner
+        };
+        let s = summarize(
+            &view,
+            &t,
+            stale,
+            &progress,
+            shape,
+            60.0,
+            Ending::EvalSuccess,
+        );
+        assert_eq!(s.env_steps, 3000);
+        assert!(s
+            .to_success
+            .iter()
+            .all(|m| m.env_steps <= Some(s.env_steps)));
         assert_eq!(json["env_steps_accounting"]["explained"], false);
     }
 
