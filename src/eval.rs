@@ -11,6 +11,8 @@ use rfcl_core::lease::{LeaseKind, ResetArgs, ResetLease};
 use rfcl_policy::{PolicyDescription, PolicyNet};
 use serde::Serialize;
 
+use crate::video::{frame_side, pointmaze_frames, video_name, write_gif, PointStep};
+
 /// Held-out seeds start this far above `eval_env.seed_offset`: the evaluations during training
 /// use `seed_offset + 0, 1, 2, ...` and the forward curriculum's levels are `0..num_seeds`.
 pub const HELD_OUT_SEED_BASE: u64 = 1 << 40;
@@ -29,6 +31,8 @@ pub struct EvalReport {
     pub mean_length: f64,
     /// `(seed, success at the end)` of every episode, in order.
     pub outcomes: Vec<(u64, bool)>,
+    /// The episodes' videos (`--video`), in order.
+    pub videos: Vec<std::path::PathBuf>,
 }
 
 impl EvalReport {
@@ -59,8 +63,9 @@ impl EvalReport {
     }
 }
 
-/// Runs `episodes` episodes of the run's env from held-out seeds with the run's exported policy.
-pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
+/// Runs `episodes` episodes of the run's env from held-out seeds with the run's exported policy;
+/// with `video`, writes each episode there as an animated GIF (PointMaze).
+pub fn eval(run_dir: &Path, episodes: u32, video: Option<&Path>) -> Result<EvalReport> {
     if episodes == 0 {
         bail!("-n must be at least 1");
     }
@@ -94,6 +99,16 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
     } else {
         None
     };
+    if let Some(dir) = video {
+        if cfg.env.env_id != rfcl_actor::pointmaze::ENV_ID {
+            bail!(
+                "--video: rfcl draws PointMaze episodes only so far; {} has no renderer here yet",
+                cfg.env.env_id
+            );
+        }
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("creating the video directory {}", dir.display()))?;
+    }
     let (obs_dim, action_dim) = rfcl_actor::suite::native_dims(&cfg.env)?;
     let env = rfcl_actor::suite::make_env(
         &cfg.env,
@@ -129,7 +144,10 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
     let mut out = StepOutput::default();
     let (mut at_end, mut once, mut ret, mut len) = (0u32, 0u32, 0.0f64, 0u64);
     let mut outcomes = Vec::with_capacity(episodes as usize);
+    let mut videos = Vec::new();
+    let mut drawn: Vec<PointStep> = Vec::new();
     for k in 0..episodes {
+        drawn.clear();
         rollout.begin(
             0,
             ResetLease {
@@ -151,8 +169,22 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
         loop {
             out.clear();
             rollout.step(Some(&mut policy), &mut out)?;
+            if video.is_some() {
+                if let Some(t) = out.transitions.first() {
+                    if drawn.is_empty() {
+                        drawn.extend(PointStep::from_obs(&t.obs));
+                    }
+                    drawn.extend(PointStep::from_obs(&t.next_obs));
+                }
+            }
             if let Some((_, r)) = out.finished.pop() {
-                outcomes.push((first_seed + u64::from(k), r.success_at_end));
+                let seed = first_seed + u64::from(k);
+                if let Some(dir) = video {
+                    let path = dir.join(video_name(k, seed, r.success_at_end, r.episode_return));
+                    write_gif(&path, frame_side(), &pointmaze_frames(&drawn))?;
+                    videos.push(path);
+                }
+                outcomes.push((seed, r.success_at_end));
                 at_end += u32::from(r.success_at_end);
                 once += u32::from(r.success_once);
                 ret += r.episode_return;
@@ -171,6 +203,7 @@ pub fn eval(run_dir: &Path, episodes: u32) -> Result<EvalReport> {
         mean_return: ret / n,
         mean_length: len as f64 / n,
         outcomes,
+        videos,
     })
 }
 
@@ -224,12 +257,12 @@ mod tests {
     fn eval_applies_the_exported_action_scale() {
         let dir = tempfile::tempdir().unwrap();
         scaled_run(dir.path(), Some(vec![0.8, 1.6]));
-        let report = eval(dir.path(), 1).unwrap();
+        let report = eval(dir.path(), 1, None).unwrap();
         assert_eq!(report.episodes, 1);
         assert_eq!(report.mean_length, rfcl_actor::pointmaze::HORIZON as f64);
 
         scaled_run(dir.path(), Some(vec![0.8, 1.6, 1.0]));
-        let err = format!("{:#}", eval(dir.path(), 1).unwrap_err());
+        let err = format!("{:#}", eval(dir.path(), 1, None).unwrap_err());
         assert!(
             err.contains("action_scale") && err.contains("3 values for 2 action dimensions"),
             "{err}"
@@ -237,10 +270,39 @@ mod tests {
 
         let bare = tempfile::tempdir().unwrap();
         scaled_run(bare.path(), None);
-        let err = format!("{:#}", eval(bare.path(), 1).unwrap_err());
+        let err = format!("{:#}", eval(bare.path(), 1, None).unwrap_err());
         assert!(
             err.contains("train.data_action_scale") && err.contains("policy.json is missing"),
             "{err}"
         );
+    }
+
+    /// `--video`: one GIF per episode, named by seed, outcome and return, with a frame every
+    /// `STEPS_PER_FRAME` steps of the 300-step episode and the last.
+    #[test]
+    fn eval_writes_a_pointmaze_video_per_episode() {
+        let dir = tempfile::tempdir().unwrap();
+        scaled_run(dir.path(), Some(vec![0.8, 1.6]));
+        let videos = dir.path().join("videos");
+        let report = eval(dir.path(), 2, Some(&videos)).unwrap();
+        assert_eq!(report.videos.len(), 2);
+        let horizon = rfcl_actor::pointmaze::HORIZON;
+        let expected_frames = horizon / crate::video::STEPS_PER_FRAME + 1;
+        for (path, &(seed, success)) in report.videos.iter().zip(&report.outcomes) {
+            let name = path.file_name().unwrap().to_str().unwrap();
+            let outcome = if success { "success" } else { "failure" };
+            assert!(
+                name.contains(&format!("_seed{seed}_{outcome}_return")) && name.ends_with(".gif"),
+                "{name}"
+            );
+            let mut decoder = gif::DecodeOptions::new()
+                .read_info(std::fs::File::open(path).unwrap())
+                .unwrap();
+            let mut frames = 0;
+            while decoder.read_next_frame().unwrap().is_some() {
+                frames += 1;
+            }
+            assert_eq!(frames, expected_frames, "{name}");
+        }
     }
 }

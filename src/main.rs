@@ -15,6 +15,7 @@ mod demos_sim;
 mod demos_suites;
 mod eval;
 mod train;
+mod video;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -66,6 +67,10 @@ enum Command {
         /// Episodes to run.
         #[arg(short = 'n', long, default_value_t = 100)]
         episodes: u32,
+        /// Write each episode into this directory as an animated GIF, named by its seed,
+        /// success and return (PointMaze, drawn by rfcl).
+        #[arg(long, value_name = "DIR")]
+        video: Option<PathBuf>,
     },
     /// Benchmarks (results go to benches/RESULTS.md).
     Bench {
@@ -252,8 +257,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 _ => ExitCode::SUCCESS,
             })
         }
-        Command::Eval { run_dir, episodes } => {
-            let report = eval::eval(&run_dir, episodes)?;
+        Command::Eval {
+            run_dir,
+            episodes,
+            video,
+        } => {
+            let report = eval::eval(&run_dir, episodes, video.as_deref())?;
             println!(
                 "{}: {} episodes from held-out seeds {}..: success {:.1}% at the end, {:.1}% \
                  once, mean return {:.2}, mean length {:.0}",
@@ -269,6 +278,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 println!(
                     "success per start cell (tenths: 9 = 90% or more; G goal, # wall, X hazard wall):\n{}",
                     report.pointmaze_map()
+                );
+            }
+            if let Some(dir) = &video {
+                println!(
+                    "{} videos (animated GIF) in {}",
+                    report.videos.len(),
+                    dir.display()
                 );
             }
             Ok(ExitCode::SUCCESS)

@@ -87,6 +87,39 @@ fn pointmaze_test_config_trains_to_its_bar() {
         "each of the 2 actors takes at least a quarter of the env steps: {shares:?}"
     );
 
+    // The dashboard's learner panel: the curriculum server polls the learner's Health over gRPC,
+    // at the address the learner announced, and shows its last progress window.
+    let panel = wait_for(Duration::from_secs(60), || {
+        let learner = curriculum_state(&processes)?.get("learner")?.clone();
+        let window = learner.get("window")?;
+        (learner["seconds_since_answer"].as_f64()? < 10.0
+            && window["updates_per_s"].as_f64()? > 0.0
+            && window["critic_loss"].as_f64().is_some()
+            && window["time_shares"]["updating"].as_f64()? > 0.0)
+            .then_some(learner)
+    })
+    .unwrap_or_else(|| {
+        panic!(
+            "no learner panel: {:?}\n{}",
+            curriculum_state(&processes).map(|s| s["learner"].clone()),
+            training.stderr()
+        )
+    });
+    assert_eq!(
+        panel["address"].as_str(),
+        Some(format!("http://{}", processes["learner"].as_str().unwrap()).as_str()),
+        "{panel}"
+    );
+    assert_eq!(panel["error"], serde_json::Value::Null, "{panel}");
+    // And a real browser renders it.
+    let dom = rfcl_testkit::browser::dump_dom(
+        &dir.path().join("chromium-profile"),
+        processes["dashboard"].as_str().unwrap(),
+    );
+    for expected in ["<h2>Learner</h2>", "updates/s <b>", "where the learner's time goes"] {
+        assert!(dom.contains(expected), "{expected}:\n{dom}");
+    }
+
     let status = training.wait(Duration::from_secs(900));
     let stderr = training.stderr();
     assert!(status.success(), "{status}:\n{stderr}");

@@ -193,8 +193,11 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
 
     async fn watch_stage(
         &self,
-        _: Request<v1::WatchStageRequest>,
+        request: Request<v1::WatchStageRequest>,
     ) -> Result<Response<StageStream>, Status> {
+        if let Some(addr) = rfcl_proto::convert::learner_addr(request.get_ref())? {
+            self.shared.learner.announce(addr);
+        }
         let rx = self.shared.stage_tx.subscribe();
         let stream = tokio_stream::wrappers::WatchStream::new(rx);
         // The stream ends (status OK) when the server stops: a subscriber never holds up a stop.

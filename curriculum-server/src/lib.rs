@@ -32,10 +32,12 @@ pub use stage::{Stage, StageChange, StageMachine, StageStatus};
 // * `views`: read models built from the state (the dashboard's view, the PointMaze heatmap).
 // * `service`: the handles a running server shares between its tasks.
 // * `grpc`: the tonic handlers, where wire messages are converted.
+// * `learner_link`: the learner panel's Health polls.
 // * `dashboard`: rendering of the views (page, charts, metrics); `server`: the process's tasks.
 pub mod bench;
 pub mod dashboard;
 pub mod grpc;
+pub mod learner_link;
 pub mod leases;
 pub mod server;
 pub mod service;

@@ -11,7 +11,7 @@ use rfcl_curriculum::server::{serve, Bound};
 use rfcl_curriculum::service::Shared;
 use rfcl_curriculum::state::{demo_metas, unix_now, DemoResets, ServerState};
 use rfcl_curriculum::{snapshot, Curriculum};
-use rfcl_proto::auth::ServerAuth;
+use rfcl_proto::auth::{ClientAuth, ServerAuth};
 
 #[derive(Parser)]
 #[command(
@@ -109,6 +109,9 @@ async fn run(args: Args) -> Result<()> {
         cfg,
         DemoResets::from_demos(&demos),
         auth.guard.clone(),
+    )
+    .with_learner_auth(
+        ClientAuth::from_env().context("polling the learner's Health for the dashboard")?,
     );
     let bound = Bound::bind(
         SocketAddr::new(args.bind, args.port),

@@ -326,6 +326,9 @@ pub async fn serve(
     let mut tasks = Tasks::default();
     tasks.spawn("lease-expiry loop", expiry_loop(shared.clone()));
     tasks.spawn("history sampler", history_loop(shared.clone()));
+    let learner = shared.learner.clone();
+    let stop = stopped(&shared);
+    tasks.spawn("learner poll", async move { learner.poll_loop(stop).await });
     if let Some(dir) = run_dir.clone() {
         tasks.spawn("snapshot writer", snapshot_loop(shared.clone(), dir));
     }

@@ -4,10 +4,11 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use rfcl_core::config::{RunConfig, Suite};
-use rfcl_proto::auth::Guard;
+use rfcl_proto::auth::{ClientAuth, Guard};
 use tokio::sync::watch;
 
 use crate::dashboard::DashboardView;
+use crate::learner_link::LearnerLink;
 use crate::state::{unix_now, DemoResets, ServerState};
 use crate::StageStatus;
 
@@ -31,6 +32,8 @@ pub struct Shared {
     /// gRPC requests refused for being over the server's message limit: tonic refuses them
     /// before any handler sees them, so the server's gRPC layer counts them.
     pub oversized_requests: Arc<AtomicU64>,
+    /// The learner's announced address and its last Health answer (the learner panel).
+    pub learner: Arc<LearnerLink>,
 }
 
 impl Shared {
@@ -46,6 +49,15 @@ impl Shared {
             stopping: Arc::new(watch::channel(false).0),
             snapshot_failures: Arc::new(AtomicU64::new(0)),
             oversized_requests: Arc::new(AtomicU64::new(0)),
+            learner: Arc::new(LearnerLink::new(None)),
+        }
+    }
+
+    /// Polls the learner that announces itself with these credentials (the learner panel).
+    pub fn with_learner_auth(self, auth: ClientAuth) -> Self {
+        Shared {
+            learner: Arc::new(LearnerLink::new(Some(auth))),
+            ..self
         }
     }
 
@@ -69,6 +81,7 @@ impl Shared {
         view.unauthenticated_calls = self.guard.refused();
         view.snapshot_failures = self.snapshot_failures.load(Ordering::Relaxed);
         view.oversized_requests = self.oversized_requests.load(Ordering::Relaxed);
+        view.learner = self.learner.panel(now);
         for bar in &mut view.demos {
             if let Some(&id) = self.demos.episode_ids.get(bar.demo as usize) {
                 bar.episode_id = id;

@@ -215,6 +215,8 @@ impl ServerState {
             evals,
             history: self.stats.history.clone(),
             maze: None,
+            // Known only to the service: `Shared::view` fills it in.
+            learner: None,
         }
     }
 }

@@ -3,34 +3,8 @@
 //! JSON and metrics endpoints must agree with it.
 mod common;
 
-use std::process::Command;
-
 use common::*;
-
-fn chromium() -> &'static str {
-    for candidate in ["/usr/bin/chromium", "/usr/bin/chromium-browser"] {
-        if std::path::Path::new(candidate).exists() {
-            return candidate;
-        }
-    }
-    panic!("Debian's chromium is needed for the dashboard test: run scripts/setup.sh (apt-get install chromium)");
-}
-
-fn headless(profile: &std::path::Path) -> Command {
-    let mut cmd = Command::new(chromium());
-    cmd.args([
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-    ])
-    .arg(format!("--user-data-dir={}", profile.display()));
-    cmd
-}
+use rfcl_testkit::browser::{dump_dom, headless};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn chromium_renders_the_demo_bars() {
@@ -65,17 +39,7 @@ async fn chromium_renders_the_demo_bars() {
         client.report(report).await.unwrap();
     }
 
-    let out = rfcl_testkit::child::output(
-        headless(&dir.path().join("profile"))
-            .arg("--dump-dom")
-            .arg(&server.dashboard),
-    );
-    assert!(
-        out.status.success(),
-        "chromium failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let dom = String::from_utf8_lossy(&out.stdout);
+    let dom = dump_dom(&dir.path().join("profile"), &server.dashboard);
     assert_eq!(
         dom.matches("class=\"demo-bar\"").count(),
         3,
@@ -88,6 +52,10 @@ async fn chromium_renders_the_demo_bars() {
         "the per-demo frontier chart and the progress legend under its chart"
     );
     assert!(dom.contains("stage <b>1</b>"));
+    assert!(
+        dom.contains("No learner has announced itself yet"),
+        "the learner panel, before any learner subscribed"
+    );
     assert!(!dom.contains("chart failed"));
 
     // A screenshot renders too (the README's picture is made the same way).

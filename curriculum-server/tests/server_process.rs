@@ -416,7 +416,7 @@ async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
             .unwrap_err(),
         forged.get_state(v1::GetStateRequest {}).await.unwrap_err(),
         forged
-            .watch_stage(v1::WatchStageRequest {})
+            .watch_stage(v1::WatchStageRequest::default())
             .await
             .unwrap_err(),
     ] {
@@ -556,7 +556,7 @@ async fn the_run_finishes_when_the_last_five_evals_reach_the_bar() {
     ]);
     let mut client = server.client().await;
     let mut stages = client
-        .watch_stage(v1::WatchStageRequest {})
+        .watch_stage(v1::WatchStageRequest::default())
         .await
         .unwrap()
         .into_inner();
@@ -622,7 +622,7 @@ async fn sigterm_with_open_stage_watches_exits_promptly_and_writes_the_snapshot(
     for _ in 0..2 {
         let mut c = server.client().await;
         let mut stream = c
-            .watch_stage(v1::WatchStageRequest {})
+            .watch_stage(v1::WatchStageRequest::default())
             .await
             .unwrap()
             .into_inner();

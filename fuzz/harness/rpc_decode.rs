@@ -10,7 +10,7 @@ use prost::Message;
 use rfcl_core::lease::{EpisodeReport, ResetArgs, ResetLease};
 use rfcl_core::transition::RecordLayout;
 use rfcl_proto::auth::{Guard, Token};
-use rfcl_proto::convert::{action_scale, report_and_acquire};
+use rfcl_proto::convert::{action_scale, learner_addr, report_and_acquire};
 use rfcl_proto::v1;
 
 /// The token the guard expects (any valid one: the input never contains it by chance).
@@ -50,8 +50,13 @@ pub fn run(data: &[u8]) -> Vec<String> {
         },
         Err(e) => refuse("ReportAndAcquireRequest", e.to_string()),
     }
-    if let Err(e) = v1::WatchStageRequest::decode(data) {
-        refuse("WatchStageRequest", e.to_string());
+    match v1::WatchStageRequest::decode(data) {
+        Ok(wire) => {
+            if let Err(e) = learner_addr(&wire) {
+                refuse("WatchStageRequest", e.to_string());
+            }
+        }
+        Err(e) => refuse("WatchStageRequest", e.to_string()),
     }
     if let Err(e) = v1::GetStateRequest::decode(data) {
         refuse("GetStateRequest", e.to_string());

@@ -63,6 +63,11 @@ struct Args {
     /// Address to bind the gRPC (and metrics) port on.
     #[arg(long, default_value = "127.0.0.1")]
     bind: IpAddr,
+    /// The URL at which the curriculum server reaches this learner's gRPC, for its dashboard's
+    /// learner panel, e.g. http://learner:50052. Default: the bound address (this host's name
+    /// when bound to 0.0.0.0 or ::).
+    #[arg(long, value_name = "URL", env = "RFCL_LEARNER_ADVERTISE")]
+    advertise: Option<String>,
     /// Where the SAC updates run (overrides sac.device).
     #[arg(long, value_parser = ["cpu", "cuda"])]
     device: Option<String>,
@@ -163,7 +168,7 @@ async fn run(args: Args) -> Result<()> {
     }
 
     let timeout = Duration::from_secs_f64(args.connect_timeout_s.max(0.1));
-    let (stage_stream, first_stage) = stages::open(&args.curriculum, &client_auth, timeout)
+    let (stage_stream, first_stage) = stages::open(&args.curriculum, &client_auth, timeout, "")
         .await
         .context("subscribing to the curriculum server's stage announcements")?;
     tracing::info!(
@@ -298,9 +303,39 @@ async fn run(args: Args) -> Result<()> {
     // The one machine-readable line on stdout: `rfcl train` and tests read the address from it.
     println!("learner ready grpc={addr}{metrics_field}");
 
+    // The first subscription was made before this learner could serve; subscribe again with its
+    // address so that the curriculum server's dashboard polls its Health. The new stream's first
+    // announcement goes to the trainer too, in case the stage moved in between.
+    let advertise = args
+        .advertise
+        .clone()
+        .unwrap_or_else(|| advertised_url(addr, server_auth.tls()));
+    rfcl_proto::convert::learner_addr(&rfcl_proto::v1::WatchStageRequest {
+        learner_addr: advertise.clone(),
+    })
+    .context("--advertise (RFCL_LEARNER_ADVERTISE)")?;
+    let stage_stream = match stages::open(&args.curriculum, &client_auth, timeout, &advertise).await
+    {
+        Ok((announced, current)) => {
+            drop(stage_stream);
+            let _ = stage_tx.send(current);
+            tracing::info!("announced to the curriculum server at {advertise}");
+            announced
+        }
+        // Training does not need the panel: go on with the first subscription, which announces
+        // this learner once it is re-opened.
+        Err(e) => {
+            tracing::warn!(
+                "could not announce this learner at {advertise} to the curriculum server ({}); its dashboard shows no learner panel until the stage subscription is re-opened",
+                rfcl_learner::error::chain(&e)
+            );
+            stage_stream
+        }
+    };
     tokio::spawn(stages::follow(
         args.curriculum.clone(),
         client_auth,
+        advertise,
         stage_stream,
         stage_tx,
         stopping_rx.clone(),
@@ -421,6 +456,18 @@ fn load_demos(args: &Args, cfg: &RunConfig) -> Result<DemoSet> {
     Ok(demos)
 }
 
+/// The URL of this learner's gRPC as another host names it: the bound address, or this host's
+/// name when bound to every interface.
+fn advertised_url(bound: SocketAddr, tls: bool) -> String {
+    let scheme = if tls { "https" } else { "http" };
+    let host = match bound.ip() {
+        ip if ip.is_unspecified() => hostname(),
+        IpAddr::V6(ip) => format!("[{ip}]"),
+        IpAddr::V4(ip) => ip.to_string(),
+    };
+    format!("{scheme}://{host}:{}", bound.port())
+}
+
 fn hostname() -> String {
     std::fs::read_to_string(Path::new("/proc/sys/kernel/hostname"))
         .map(|s| s.trim().to_string())
@@ -428,4 +475,20 @@ fn hostname() -> String {
         .filter(|s| !s.is_empty())
         .or_else(|| std::env::var("HOSTNAME").ok())
         .unwrap_or_else(|| "localhost".into())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_advertised_url_is_the_bound_address_or_the_host_name() {
+        let at = |ip: &str| SocketAddr::new(ip.parse().unwrap(), 50052);
+        assert_eq!(advertised_url(at("127.0.0.1"), false), "http://127.0.0.1:50052");
+        assert_eq!(advertised_url(at("::1"), true), "https://[::1]:50052");
+        assert_eq!(
+            advertised_url(at("0.0.0.0"), false),
+            format!("http://{}:50052", hostname())
+        );
+    }
 }

@@ -46,7 +46,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::ingest::{validate_batch, IngestCounters, IngestItem, StreamTally, Transport};
-use crate::trainer::{LearnerStatus, PolicyWatch};
+use crate::trainer::{LearnerStatus, PolicyWatch, WindowStats};
 
 /// Largest gRPC message sent (policy weights of wide networks). What the learner accepts is
 /// [`max_request_bytes`].
@@ -310,7 +310,31 @@ impl Learner for LearnerService {
             refused_batches: t.refused_batches,
             unauthenticated_calls: self.guard.refused(),
             run_id: self.info.run_id.clone(),
+            window: self.status.window().map(|w| window_to_wire(&w)),
         }))
+    }
+}
+
+/// The learner's last progress window as `HealthReply.window`.
+fn window_to_wire(w: &WindowStats) -> v1::LearnerWindow {
+    let [critic_loss, q, actor_loss, entropy, temperature, _temp_loss] = w.update_means;
+    v1::LearnerWindow {
+        seconds: w.seconds,
+        updates_per_s: w.updates_per_s,
+        env_steps_per_s: w.env_steps_per_s,
+        utd: w.utd,
+        utd_target: w.utd_target,
+        policy_lag_max: w.policy_lag_max,
+        critic_loss,
+        q,
+        actor_loss,
+        entropy,
+        temperature,
+        wait_s: w.timings.wait,
+        ingest_s: w.timings.ingest,
+        update_s: w.timings.update,
+        publish_s: w.timings.publish,
+        checkpoint_s: w.timings.checkpoint,
     }
 }
 
@@ -339,4 +363,42 @@ pub async fn serve(
             shutdown,
         )
         .await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metrics::Timings;
+
+    #[test]
+    fn the_window_goes_on_the_wire_with_each_update_mean_in_its_field() {
+        let w = WindowStats {
+            seconds: 10.0,
+            updates_per_s: 40.0,
+            env_steps_per_s: 2.5,
+            utd: 15.5,
+            utd_target: 16.0,
+            policy_lag_max: 3,
+            update_means: [Some(1.0), Some(2.0), Some(3.0), Some(4.0), Some(0.5), Some(6.0)],
+            timings: Timings {
+                wait: 1.0,
+                ingest: 0.5,
+                update: 8.0,
+                publish: 0.25,
+                checkpoint: 0.125,
+            },
+        };
+        let wire = window_to_wire(&w);
+        assert_eq!(
+            (wire.critic_loss, wire.q, wire.actor_loss, wire.entropy, wire.temperature),
+            (Some(1.0), Some(2.0), Some(3.0), Some(4.0), Some(0.5))
+        );
+        assert_eq!((wire.seconds, wire.updates_per_s, wire.policy_lag_max), (10.0, 40.0, 3));
+        assert_eq!(
+            (wire.wait_s, wire.ingest_s, wire.update_s, wire.publish_s, wire.checkpoint_s),
+            (1.0, 0.5, 8.0, 0.25, 0.125)
+        );
+        let idle = window_to_wire(&WindowStats::default());
+        assert_eq!(idle.critic_loss, None);
+    }
 }

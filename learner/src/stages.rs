@@ -88,11 +88,13 @@ pub enum StageWatchError {
 }
 
 /// Opens `WatchStage` on the curriculum server at `addr` and returns the stream with its first
-/// announcement (the current stage).
+/// announcement (the current stage). `learner_addr` (empty: not serving yet) tells the server
+/// where to poll this learner's Health for its dashboard.
 pub async fn open(
     addr: &str,
     auth: &ClientAuth,
     timeout: Duration,
+    learner_addr: &str,
 ) -> Result<(Streaming<v1::StageEvent>, StageAnnouncement), StageWatchError> {
     let attempt = async {
         let endpoint = Endpoint::from_shared(addr.to_string())
@@ -110,7 +112,9 @@ pub async fn open(
                     source,
                 })?;
         let mut stream = CurriculumClient::new(auth.wrap(channel))
-            .watch_stage(v1::WatchStageRequest {})
+            .watch_stage(v1::WatchStageRequest {
+                learner_addr: learner_addr.to_string(),
+            })
             .await
             .map_err(|status| StageWatchError::Refused {
                 addr: addr.into(),
@@ -135,10 +139,12 @@ pub async fn open(
 }
 
 /// Forwards every stage event of `stream` (and of re-opened streams after a break) to `events`
-/// as an announcement, until `stopping` turns true or the receiver is gone.
+/// as an announcement, until `stopping` turns true or the receiver is gone. Re-opened streams
+/// announce `learner_addr` again (a restarted server learns it from them).
 pub async fn follow(
     addr: String,
     auth: ClientAuth,
+    learner_addr: String,
     mut stream: Streaming<v1::StageEvent>,
     events: mpsc::UnboundedSender<StageAnnouncement>,
     mut stopping: watch::Receiver<bool>,
@@ -165,7 +171,7 @@ pub async fn follow(
                 _ = tokio::time::sleep(RECONNECT_EVERY) => {}
                 _ = stopping.wait_for(|s| *s) => return,
             }
-            match open(&addr, &auth, Duration::from_secs(5)).await {
+            match open(&addr, &auth, Duration::from_secs(5), &learner_addr).await {
                 Ok((next, first)) => {
                     tracing::info!("WatchStage re-opened at {addr}");
                     if events.send(first).is_err() {

@@ -65,7 +65,7 @@ use crate::tensorboard::EventWriter;
 pub use outputs::{PolicyWatch, PublishedPolicy};
 pub use setup::{replay_seed, steps_per_iteration};
 use telemetry::Window;
-pub use telemetry::{LearnerStatus, StatusSnapshot};
+pub use telemetry::{LearnerStatus, StatusSnapshot, WindowStats};
 
 /// How often the training thread logs its progress line (stderr).
 pub const REPORT_EVERY: Duration = Duration::from_secs(10);

@@ -271,6 +271,36 @@ pub fn action_scale(info: &v1::RunInfo) -> Result<Option<Vec<f32>>, WireError> {
     Ok(Some(scale.clone()))
 }
 
+/// The longest learner address a `WatchStageRequest` may carry.
+pub const MAX_LEARNER_ADDR_CHARS: usize = 256;
+
+/// `WatchStageRequest.learner_addr` as the domain value: `None` when empty (an actor), else an
+/// `http://` or `https://` URL with a host and a port, at most [`MAX_LEARNER_ADDR_CHARS`] long.
+pub fn learner_addr(request: &v1::WatchStageRequest) -> Result<Option<String>, WireError> {
+    let raw = request.learner_addr.as_str();
+    if raw.is_empty() {
+        return Ok(None);
+    }
+    let bad = |problem: String| WireError::new("WatchStageRequest", "learner_addr", problem);
+    if raw.chars().count() > MAX_LEARNER_ADDR_CHARS {
+        return Err(bad(format!(
+            "expected at most {MAX_LEARNER_ADDR_CHARS} characters, got {}",
+            raw.chars().count()
+        )));
+    }
+    let uri: tonic::codegen::http::Uri = raw
+        .parse()
+        .map_err(|e| bad(format!("expected a URL like http://host:50052, got {raw:?} ({e})")))?;
+    let scheme_ok = matches!(uri.scheme_str(), Some("http" | "https"));
+    let path_ok = matches!(uri.path(), "" | "/") && uri.query().is_none();
+    if !scheme_ok || uri.host().is_none() || uri.port_u16().is_none() || !path_ok {
+        return Err(bad(format!(
+            "expected http://host:port or https://host:port, got {raw:?}"
+        )));
+    }
+    Ok(Some(raw.to_string()))
+}
+
 /// The two halves of a `ReportAndAcquire` call.
 pub fn report_and_acquire(
     wire: v1::ReportAndAcquireRequest,
@@ -441,5 +471,35 @@ mod tests {
         let status: tonic::Status = EpisodeReport::try_from(bad).unwrap_err().into();
         assert_eq!(status.code(), tonic::Code::InvalidArgument);
         assert!(status.message().contains("EpisodeReport.lease_id"));
+    }
+
+    #[test]
+    fn a_learner_address_is_a_url_with_host_and_port_or_nothing() {
+        let req = |addr: &str| v1::WatchStageRequest {
+            learner_addr: addr.to_string(),
+        };
+        assert_eq!(learner_addr(&req("")), Ok(None));
+        for good in ["http://learner:50052", "https://10.0.0.2:443", "http://[::1]:7/"] {
+            assert_eq!(learner_addr(&req(good)), Ok(Some(good.to_string())), "{good}");
+        }
+        for bad in [
+            "learner:50052",
+            "ftp://learner:21",
+            "http://learner",
+            "http://learner:50052/path",
+            "not a url",
+        ] {
+            let err = learner_addr(&req(bad)).unwrap_err();
+            assert_eq!(
+                (err.message, err.field),
+                ("WatchStageRequest", "learner_addr"),
+                "{bad}"
+            );
+        }
+        let long = format!("http://{}:1", "a".repeat(MAX_LEARNER_ADDR_CHARS));
+        assert!(learner_addr(&req(&long))
+            .unwrap_err()
+            .problem
+            .contains("at most 256"));
     }
 }

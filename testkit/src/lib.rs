@@ -8,8 +8,10 @@
 //! * [`binaries`]: the service binaries next to the test executable, built with cargo (same
 //!   profile) when one is missing;
 //! * [`hdf5`]: the lock that keeps forks away from open HDF5 files;
-//! * [`demos`]: small synthetic demo files whose states say which demo and step they are.
+//! * [`demos`]: small synthetic demo files whose states say which demo and step they are;
+//! * [`browser`]: headless Chromium for the dashboard's pages.
 pub mod binaries;
+pub mod browser;
 pub mod child;
 pub mod demos;
 pub mod hdf5;

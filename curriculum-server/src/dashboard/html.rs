@@ -5,12 +5,81 @@ use super::charts::{
     demo_bars_svg, demo_color, demo_frontiers_svg, level_probabilities_svg, maze_heatmap_svg,
     progress_svg, PROGRESS_LEGEND,
 };
-use super::view::{DashboardView, LevelRow};
+use super::view::{DashboardView, LearnerPanel, LevelRow};
 
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
         .replace('<', "&lt;")
         .replace('>', "&gt;")
+}
+
+/// Colours of the learner's activities in its time bar, in `TimeShares::labelled` order.
+const ACTIVITY_COLOURS: [&str; 5] = ["#1f77b4", "#bbbbbb", "#ff7f0e", "#2ca02c", "#9467bd"];
+
+/// The learner beside the curriculum: rates, losses and where its time goes, as its Health RPC
+/// last answered.
+fn learner_panel(h: &mut String, panel: Option<&LearnerPanel>) {
+    h.push_str("<h2>Learner</h2>\n<div id=\"learner\">");
+    let Some(p) = panel else {
+        h.push_str("<p>No learner has announced itself yet (it does when it subscribes to the stage announcements).</p></div>\n");
+        return;
+    };
+    let answered = match p.seconds_since_answer {
+        Some(s) => format!("answered {s:.0} s ago"),
+        None => "no answer yet".into(),
+    };
+    let _ = writeln!(
+        h,
+        "<p class=\"kv\"><span>at <code>{}</code> ({answered})</span><span>{}</span><span>env steps <b>{}</b></span><span>critic updates {}</span><span>policy v{}</span></p>",
+        esc(&p.address),
+        if p.ok || p.seconds_since_answer.is_none() { "ok" } else { "<span class=err>training failed</span>" },
+        p.env_steps,
+        p.critic_updates,
+        p.policy_version,
+    );
+    if let Some(e) = &p.error {
+        let _ = writeln!(h, "<p class=err>{}</p>", esc(e));
+    }
+    let Some(w) = &p.window else {
+        h.push_str("<p>No progress window yet (the learner reports one every 10 s).</p></div>\n");
+        return;
+    };
+    let num = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.4}"));
+    let _ = writeln!(
+        h,
+        "<p class=\"kv\"><span>updates/s <b>{:.1}</b></span><span>env steps/s {:.1}</span><span>UTD {:.2} (target {:.2})</span><span>policy lag ≤ {}</span></p>\n\
+         <p class=\"kv\"><span>critic loss {}</span><span>actor loss {}</span><span>mean Q {}</span><span>temperature {}</span><span>entropy {}</span><span>(means over the last {:.0} s)</span></p>",
+        w.updates_per_s,
+        w.env_steps_per_s,
+        w.utd,
+        w.utd_target,
+        w.policy_lag_max,
+        num(w.critic_loss),
+        num(w.actor_loss),
+        num(w.q),
+        num(w.temperature),
+        num(w.entropy),
+        w.seconds,
+    );
+    h.push_str("<div id=\"learner-time\" style=\"display:flex;width:600px;height:14px;border:1px solid #ccc\">");
+    let shares = w.time_shares.labelled();
+    for ((label, share), colour) in shares.iter().zip(ACTIVITY_COLOURS) {
+        let _ = write!(
+            h,
+            "<div title=\"{label} {:.0}%\" style=\"width:{:.2}%;background:{colour}\"></div>",
+            share * 100.0,
+            share * 100.0
+        );
+    }
+    h.push_str("</div>\n<p class=\"legend\">where the learner's time goes: ");
+    for ((label, share), colour) in shares.iter().zip(ACTIVITY_COLOURS) {
+        let _ = write!(
+            h,
+            "<span style=\"color:{colour}\">■</span> {label} {:.0}% &nbsp; ",
+            share * 100.0
+        );
+    }
+    h.push_str("</p></div>\n");
 }
 
 /// The dashboard page. It refreshes itself every `refresh_s` seconds with a meta tag.
@@ -63,6 +132,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
     if let Some(s1) = view.stage_1_env_steps {
         let _ = writeln!(h, "<p>stage 1 ended after <b>{s1}</b> env steps</p>");
     }
+    learner_panel(&mut h, view.learner.as_ref());
     h.push_str("<h2>Reverse curriculum: demos</h2>\n");
     h.push_str(&demo_bars_svg(&view.demos));
     h.push_str("<h3>Frontiers over env steps</h3>\n");

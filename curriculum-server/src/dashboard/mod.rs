@@ -19,8 +19,8 @@ pub use charts::{
 pub use html::render_html;
 pub use metrics::metrics_text;
 pub use view::{
-    ActorRow, DashboardView, DemoBar, DemoDifficulty, EvalPoint, LevelRow, MazeCell, MazeSnapshot,
-    MazeView, ProgressPoint, RefusedReports,
+    ActorRow, DashboardView, DemoBar, DemoDifficulty, EvalPoint, LearnerPanel, LearnerWindowView,
+    LevelRow, MazeCell, MazeSnapshot, MazeView, ProgressPoint, RefusedReports, TimeShares,
 };
 
 #[cfg(test)]

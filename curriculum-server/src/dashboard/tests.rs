@@ -226,3 +226,66 @@ fn empty_views_render() {
     assert!(html.contains("<svg"));
     assert!(level_probabilities_svg(&[]).starts_with("<svg"));
 }
+
+#[test]
+fn the_learner_panel_shows_rates_losses_and_where_the_time_goes() {
+    let mut v = view();
+    let html = render_html(&v, 2);
+    assert!(html.contains("No learner has announced itself yet"), "{html}");
+
+    v.learner = Some(LearnerPanel {
+        address: "http://learner:50052".into(),
+        seconds_since_answer: Some(1.0),
+        error: None,
+        ok: true,
+        env_steps: 40_000,
+        critic_updates: 640_000,
+        policy_version: 12,
+        run_id: "r1".into(),
+        window: Some(LearnerWindowView {
+            seconds: 10.0,
+            updates_per_s: 31.5,
+            env_steps_per_s: 2.0,
+            utd: 15.9,
+            utd_target: 16.0,
+            policy_lag_max: 2,
+            critic_loss: Some(0.125),
+            actor_loss: Some(-3.5),
+            q: Some(4.25),
+            entropy: None,
+            temperature: Some(0.05),
+            time_shares: TimeShares {
+                waiting: 0.1,
+                ingesting: 0.05,
+                updating: 0.8,
+                publishing: 0.02,
+                checkpointing: 0.0,
+            },
+        }),
+    });
+    let html = render_html(&v, 2);
+    for expected in [
+        "<code>http://learner:50052</code> (answered 1 s ago)",
+        "updates/s <b>31.5</b>",
+        "UTD 15.90 (target 16.00)",
+        "policy lag ≤ 2",
+        "critic loss 0.1250",
+        "actor loss -3.5000",
+        "mean Q 4.2500",
+        "temperature 0.0500",
+        "entropy –",
+        "updating 80%",
+        "waiting for data 10%",
+        "publishing the policy 2%",
+    ] {
+        assert!(html.contains(expected), "{expected}: {html}");
+    }
+    assert_eq!(html.matches("<div title=").count(), 5);
+
+    // A failed poll keeps the last answer and says why.
+    let panel = v.learner.as_mut().unwrap();
+    panel.error = Some("Health at http://learner:50052: no answer within 2 s".into());
+    let html = render_html(&v, 2);
+    assert!(html.contains("<p class=err>Health at http://learner:50052: no answer within 2 s</p>"));
+    assert!(html.contains("updates/s <b>31.5</b>"));
+}

@@ -48,6 +48,75 @@ pub struct DashboardView {
     /// The PointMaze success heatmap (PointMaze runs only).
     #[serde(default)]
     pub maze: Option<MazeView>,
+    /// The learner as its Health RPC last answered; `None` until a learner announces where it
+    /// serves. Absent from older servers' JSON.
+    #[serde(default)]
+    pub learner: Option<LearnerPanel>,
+}
+
+/// The learner beside the curriculum, polled over gRPC (its Health RPC, with the run's token).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LearnerPanel {
+    /// Where the learner said it serves (`learner --advertise`).
+    pub address: String,
+    /// Seconds since the learner last answered; `None`: it has not answered yet.
+    pub seconds_since_answer: Option<f64>,
+    /// Why the last poll failed, when it did.
+    pub error: Option<String>,
+    /// The learner's own health flag: false once its training thread failed.
+    pub ok: bool,
+    pub env_steps: u64,
+    pub critic_updates: u64,
+    pub policy_version: u64,
+    /// The learner session (it changes when the learner restarts).
+    pub run_id: String,
+    /// Its last progress window; `None` before the first (the first ten seconds).
+    pub window: Option<LearnerWindowView>,
+}
+
+/// One progress window of the learner: rates, losses, and where its time went.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LearnerWindowView {
+    pub seconds: f64,
+    pub updates_per_s: f64,
+    pub env_steps_per_s: f64,
+    /// Critic updates per env step since the start, and the configured ratio.
+    pub utd: f64,
+    pub utd_target: f64,
+    /// How many versions behind the newest policy the oldest acting policy was.
+    pub policy_lag_max: u64,
+    /// Means over the window's updates; `None` when no update ran in it.
+    pub critic_loss: Option<f64>,
+    pub actor_loss: Option<f64>,
+    pub q: Option<f64>,
+    pub entropy: Option<f64>,
+    pub temperature: Option<f64>,
+    /// Fractions of the window spent waiting for data, taking it in, updating, publishing the
+    /// policy and checkpointing (the rest is the loop's own bookkeeping).
+    pub time_shares: TimeShares,
+}
+
+/// Fractions of a window per learner activity.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct TimeShares {
+    pub waiting: f64,
+    pub ingesting: f64,
+    pub updating: f64,
+    pub publishing: f64,
+    pub checkpointing: f64,
+}
+
+impl TimeShares {
+    /// `(label, fraction)` in display order.
+    pub fn labelled(&self) -> [(&'static str, f64); 5] {
+        [
+            ("updating", self.updating),
+            ("waiting for data", self.waiting),
+            ("taking in data", self.ingesting),
+            ("publishing the policy", self.publishing),
+            ("checkpointing", self.checkpointing),
+        ]
+    }
 }
 
 /// The PointMaze heatmap (the paper's figure): success per start cell over the run.

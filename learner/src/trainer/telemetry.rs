@@ -15,6 +15,8 @@ pub struct LearnerStatus {
     /// Written by the training thread at consistent points (after an iteration, when the ingest
     /// pauses), so a reader never sees env steps and updates of different moments.
     snapshot: std::sync::Mutex<StatusSnapshot>,
+    /// The last progress window (the periodic log line's figures); `None` before the first.
+    window: std::sync::Mutex<Option<WindowStats>>,
     /// The training thread stopped with an error.
     pub failed: AtomicBool,
     /// The training thread finished (final checkpoint written).
@@ -39,6 +41,32 @@ impl LearnerStatus {
     fn set(&self, snapshot: StatusSnapshot) {
         *self.snapshot.lock().unwrap_or_else(|p| p.into_inner()) = snapshot;
     }
+
+    /// The last progress window, for the Health RPC (the dashboard's learner panel).
+    pub fn window(&self) -> Option<WindowStats> {
+        *self.window.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn set_window(&self, window: WindowStats) {
+        *self.window.lock().unwrap_or_else(|p| p.into_inner()) = Some(window);
+    }
+}
+
+/// What the learner did over one progress window: rates, the mean update metrics, and seconds
+/// per activity.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct WindowStats {
+    pub seconds: f64,
+    pub updates_per_s: f64,
+    pub env_steps_per_s: f64,
+    pub utd: f64,
+    pub utd_target: f64,
+    pub policy_lag_max: u64,
+    /// Means of the spec 5.8 update tags over the window (`UpdateMetrics::tagged` order:
+    /// critic loss, Q, actor loss, entropy, temperature, temperature loss); `None` when no
+    /// update ran.
+    pub update_means: [Option<f64>; 6],
+    pub timings: Timings,
 }
 
 /// Activity of one window (a metrics row or a progress line).
@@ -117,6 +145,16 @@ impl Trainer {
             (self.progress.env_steps - w.env_steps) as f64 / secs,
             w.lag_max,
         );
+        self.status.set_window(WindowStats {
+            seconds: secs,
+            updates_per_s: self.last_window.0,
+            env_steps_per_s: self.last_window.1,
+            utd: self.limiter.achieved_utd(),
+            utd_target: self.limiter.target_utd(),
+            policy_lag_max: w.lag_max,
+            update_means: w.updates.means(),
+            timings: t,
+        });
         self.update_status();
         tracing::info!(
             "stage {} | env steps {} ({:.1}/s) | critic updates {} ({:.1}/s) | UTD {:.3} (target {:.3}) | online {}/{} offline {} ({:.1} MB) | dropped stale {} | policy v{} lag<={} | time: wait {:.0}% ingest {:.0}% update {:.0}% publish {:.0}% checkpoint {:.0}%",

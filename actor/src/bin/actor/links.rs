@@ -147,7 +147,7 @@ impl Curriculum {
         let mut c = self.client.clone();
         let first = async move {
             let mut stream = c
-                .watch_stage(v1::WatchStageRequest {})
+                .watch_stage(v1::WatchStageRequest::default())
                 .await
                 .ok()?
                 .into_inner();
