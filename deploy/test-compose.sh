@@ -4,7 +4,8 @@
 # (rfcl-test, its own volumes, ports 18080/15005x/19090 on 127.0.0.1), then checks that
 #   1. demos are generated, the servers become healthy (rfcl-health), the actors connect;
 #   2. the co-located actors took shared memory (their log says which transport and why);
-#   3. the dashboard answers on the published port and shows env steps growing;
+#   3. the dashboard answers on the published port, shows env steps growing, and its learner panel
+#      polls the learner's Health across the compose network (learner --advertise);
 #   4. a wrong token is refused; a killed actor process (kill -9, a crash) is brought back by the
 #      restart policy;
 #   5. `down` then `up` resumes the run (the curriculum server logs the resume, the learner's env
@@ -46,6 +47,16 @@ shm_records() {
     | sed -n 's/^rfcl_learner_ingest_records_total{transport="shm"} \([0-9]*\).*/\1/p'
 }
 shm_flowing() { local n; n=$(shm_records) && [ "${n:-0}" -gt 0 ]; }
+# The dashboard's learner panel has an answer from http://learner:50052 with updates running.
+learner_panel() {
+  curl -fsS "http://127.0.0.1:$RFCL_DASHBOARD_PORT/api/state" 2>/dev/null | python3 -c '
+import json, sys
+p = json.load(sys.stdin).get("learner") or {}
+w = p.get("window") or {}
+ok = p.get("address") == "http://learner:50052" and p.get("error") is None \
+    and p.get("seconds_since_answer") is not None and w.get("updates_per_s", 0) > 0
+sys.exit(0 if ok else 1)' 2>/dev/null
+}
 
 step "docker, images, token"
 deploy/setup-docker.sh | sed 's/^/    /'
@@ -68,6 +79,7 @@ wait_for 60 "the learner takes records over shared memory (its /metrics)" shm_fl
 wait_for 60 "dashboard answers on 127.0.0.1:$RFCL_DASHBOARD_PORT" \
   curl -fsS -o /dev/null "http://127.0.0.1:$RFCL_DASHBOARD_PORT/"
 wait_for 120 "env steps growing on the dashboard (> 2000)" steps_above 2000
+wait_for 60 "the dashboard's learner panel polls http://learner:50052 (updates/s > 0)" learner_panel
 
 step "a wrong token is refused"
 out=$(docker run --rm --network "${P}_default" -e RFCL_TOKEN=not-the-run-token-0123456789 -e NO_COLOR=1 \
