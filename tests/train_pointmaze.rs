@@ -112,7 +112,11 @@ fn pointmaze_test_config_trains_to_its_bar() {
         &dir.path().join("chromium-profile"),
         processes["dashboard"].as_str().unwrap(),
     );
-    for expected in ["<h2>Learner</h2>", "updates/s <b>", "where the learner's time goes"] {
+    for expected in [
+        "<h2>Learner</h2>",
+        "updates/s <b>",
+        "where the learner's time goes",
+    ] {
         assert!(dom.contains(expected), "{expected}:\n{dom}");
     }
 

@@ -176,7 +176,13 @@ fn panel_from_wire(reply: v1::HealthReply) -> LearnerPanel {
             temperature: w.temperature,
             time_shares: time_shares(
                 w.seconds,
-                [w.wait_s, w.ingest_s, w.update_s, w.publish_s, w.checkpoint_s],
+                [
+                    w.wait_s,
+                    w.ingest_s,
+                    w.update_s,
+                    w.publish_s,
+                    w.checkpoint_s,
+                ],
             ),
         }),
     }
@@ -212,7 +218,13 @@ mod tests {
         // checkpointing.
         let s = time_shares(10.0, [1.0, 0.5, 8.0, 0.25, 0.0]);
         assert_eq!(
-            (s.waiting, s.ingesting, s.updating, s.publishing, s.checkpointing),
+            (
+                s.waiting,
+                s.ingesting,
+                s.updating,
+                s.publishing,
+                s.checkpointing
+            ),
             (0.1, 0.05, 0.8, 0.025, 0.0)
         );
         // Clock skew cannot make a share exceed the window; an empty window has none.
@@ -222,9 +234,7 @@ mod tests {
 
     #[test]
     fn the_panel_appears_on_announcement_and_keeps_the_last_answer_through_failures() {
-        let link = LearnerLink::new(Some(ClientAuth::plain(
-            rfcl_proto::auth::Token::random(),
-        )));
+        let link = LearnerLink::new(Some(ClientAuth::plain(rfcl_proto::auth::Token::random())));
         assert_eq!(link.panel(0.0), None);
         link.announce("http://learner:50052".into());
         let panel = link.panel(0.0).unwrap();
@@ -253,7 +263,10 @@ mod tests {
         assert_eq!(panel.error.as_deref(), Some("Health at …: no answer"));
         assert_eq!((panel.critic_updates, panel.policy_version), (320, 7));
         let w = panel.window.unwrap();
-        assert_eq!((w.updates_per_s, w.critic_loss, w.actor_loss), (32.0, Some(0.5), None));
+        assert_eq!(
+            (w.updates_per_s, w.critic_loss, w.actor_loss),
+            (32.0, Some(0.5), None)
+        );
         assert_eq!(w.time_shares.updating, 0.5);
 
         // An answer from an address the learner no longer announces is dropped.
@@ -267,6 +280,11 @@ mod tests {
     fn without_credentials_the_panel_says_it_is_not_polled() {
         let link = LearnerLink::new(None);
         link.announce("http://learner:50052".into());
-        assert!(link.panel(0.0).unwrap().error.unwrap().contains("not polled"));
+        assert!(link
+            .panel(0.0)
+            .unwrap()
+            .error
+            .unwrap()
+            .contains("not polled"));
     }
 }

@@ -484,7 +484,10 @@ mod tests {
     #[test]
     fn the_advertised_url_is_the_bound_address_or_the_host_name() {
         let at = |ip: &str| SocketAddr::new(ip.parse().unwrap(), 50052);
-        assert_eq!(advertised_url(at("127.0.0.1"), false), "http://127.0.0.1:50052");
+        assert_eq!(
+            advertised_url(at("127.0.0.1"), false),
+            "http://127.0.0.1:50052"
+        );
         assert_eq!(advertised_url(at("::1"), true), "https://[::1]:50052");
         assert_eq!(
             advertised_url(at("0.0.0.0"), false),

@@ -379,7 +379,14 @@ mod tests {
             utd: 15.5,
             utd_target: 16.0,
             policy_lag_max: 3,
-            update_means: [Some(1.0), Some(2.0), Some(3.0), Some(4.0), Some(0.5), Some(6.0)],
+            update_means: [
+                Some(1.0),
+                Some(2.0),
+                Some(3.0),
+                Some(4.0),
+                Some(0.5),
+                Some(6.0),
+            ],
             timings: Timings {
                 wait: 1.0,
                 ingest: 0.5,
@@ -390,12 +397,27 @@ mod tests {
         };
         let wire = window_to_wire(&w);
         assert_eq!(
-            (wire.critic_loss, wire.q, wire.actor_loss, wire.entropy, wire.temperature),
+            (
+                wire.critic_loss,
+                wire.q,
+                wire.actor_loss,
+                wire.entropy,
+                wire.temperature
+            ),
             (Some(1.0), Some(2.0), Some(3.0), Some(4.0), Some(0.5))
         );
-        assert_eq!((wire.seconds, wire.updates_per_s, wire.policy_lag_max), (10.0, 40.0, 3));
         assert_eq!(
-            (wire.wait_s, wire.ingest_s, wire.update_s, wire.publish_s, wire.checkpoint_s),
+            (wire.seconds, wire.updates_per_s, wire.policy_lag_max),
+            (10.0, 40.0, 3)
+        );
+        assert_eq!(
+            (
+                wire.wait_s,
+                wire.ingest_s,
+                wire.update_s,
+                wire.publish_s,
+                wire.checkpoint_s
+            ),
             (1.0, 0.5, 8.0, 0.25, 0.125)
         );
         let idle = window_to_wire(&WindowStats::default());

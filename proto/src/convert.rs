@@ -288,9 +288,11 @@ pub fn learner_addr(request: &v1::WatchStageRequest) -> Result<Option<String>, W
             raw.chars().count()
         )));
     }
-    let uri: tonic::codegen::http::Uri = raw
-        .parse()
-        .map_err(|e| bad(format!("expected a URL like http://host:50052, got {raw:?} ({e})")))?;
+    let uri: tonic::codegen::http::Uri = raw.parse().map_err(|e| {
+        bad(format!(
+            "expected a URL like http://host:50052, got {raw:?} ({e})"
+        ))
+    })?;
     let scheme_ok = matches!(uri.scheme_str(), Some("http" | "https"));
     let path_ok = matches!(uri.path(), "" | "/") && uri.query().is_none();
     if !scheme_ok || uri.host().is_none() || uri.port_u16().is_none() || !path_ok {
@@ -479,8 +481,16 @@ mod tests {
             learner_addr: addr.to_string(),
         };
         assert_eq!(learner_addr(&req("")), Ok(None));
-        for good in ["http://learner:50052", "https://10.0.0.2:443", "http://[::1]:7/"] {
-            assert_eq!(learner_addr(&req(good)), Ok(Some(good.to_string())), "{good}");
+        for good in [
+            "http://learner:50052",
+            "https://10.0.0.2:443",
+            "http://[::1]:7/",
+        ] {
+            assert_eq!(
+                learner_addr(&req(good)),
+                Ok(Some(good.to_string())),
+                "{good}"
+            );
         }
         for bad in [
             "learner:50052",

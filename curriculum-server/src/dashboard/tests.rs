@@ -231,7 +231,10 @@ fn empty_views_render() {
 fn the_learner_panel_shows_rates_losses_and_where_the_time_goes() {
     let mut v = view();
     let html = render_html(&v, 2);
-    assert!(html.contains("No learner has announced itself yet"), "{html}");
+    assert!(
+        html.contains("No learner has announced itself yet"),
+        "{html}"
+    );
 
     v.learner = Some(LearnerPanel {
         address: "http://learner:50052".into(),
