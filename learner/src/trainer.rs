@@ -151,8 +151,8 @@ pub struct Trainer {
     prom: Arc<LearnerMetrics>,
     /// Seconds per activity since this process started (Prometheus).
     seconds: Timings,
-    /// Critic updates/s, env steps/s and the largest policy lag of the last progress window.
-    last_window: (f64, f64, u64),
+    /// The last progress window (rates, policy lag, update means, time per activity).
+    last_window: WindowStats,
     /// A batch partly handled (the ingest paused at a boundary).
     pending: Option<IngestItem>,
     stop: Option<StopReason>,

@@ -8,7 +8,9 @@ use rfcl_core::demo::DemoSet;
 use rfcl_core::transition::RecordLayout;
 use tokio::sync::watch;
 
-use super::{LearnerStatus, PolicyWatch, PublishedPolicy, Result, TrainError, Trainer, Window};
+use super::{
+    LearnerStatus, PolicyWatch, PublishedPolicy, Result, TrainError, Trainer, Window, WindowStats,
+};
 use crate::checkpoint::{self, Manifest, Progress};
 use crate::limiter::UtdLimiter;
 use crate::metrics::{MetricsCsv, Timings};
@@ -172,7 +174,7 @@ impl Trainer {
             tb,
             prom: Arc::new(LearnerMetrics::default()),
             seconds: Timings::default(),
-            last_window: (0.0, 0.0, 0),
+            last_window: WindowStats::default(),
             pending: None,
             stop: None,
             policy_tx,

@@ -140,29 +140,25 @@ impl Trainer {
         let w = std::mem::replace(&mut self.report, Window::new(&self.progress));
         let secs = w.start.elapsed().as_secs_f64();
         let t = w.timings;
-        self.last_window = (
-            (self.progress.critic_updates - w.critic_updates) as f64 / secs,
-            (self.progress.env_steps - w.env_steps) as f64 / secs,
-            w.lag_max,
-        );
-        self.status.set_window(WindowStats {
+        self.last_window = WindowStats {
             seconds: secs,
-            updates_per_s: self.last_window.0,
-            env_steps_per_s: self.last_window.1,
+            updates_per_s: (self.progress.critic_updates - w.critic_updates) as f64 / secs,
+            env_steps_per_s: (self.progress.env_steps - w.env_steps) as f64 / secs,
             utd: self.limiter.achieved_utd(),
             utd_target: self.limiter.target_utd(),
             policy_lag_max: w.lag_max,
             update_means: w.updates.means(),
             timings: t,
-        });
+        };
+        self.status.set_window(self.last_window);
         self.update_status();
         tracing::info!(
             "stage {} | env steps {} ({:.1}/s) | critic updates {} ({:.1}/s) | UTD {:.3} (target {:.3}) | online {}/{} offline {} ({:.1} MB) | dropped stale {} | policy v{} lag<={} | time: wait {:.0}% ingest {:.0}% update {:.0}% publish {:.0}% checkpoint {:.0}%",
             self.progress.stage,
             self.progress.env_steps,
-            (self.progress.env_steps - w.env_steps) as f64 / secs,
+            self.last_window.env_steps_per_s,
             self.progress.critic_updates,
-            (self.progress.critic_updates - w.critic_updates) as f64 / secs,
+            self.last_window.updates_per_s,
             self.limiter.achieved_utd(),
             self.limiter.target_utd(),
             self.replay.online.len(),
@@ -221,7 +217,12 @@ impl Trainer {
             capacity: b.capacity(),
             bytes: b.bytes(),
         };
-        let (updates_per_s, env_steps_per_s, lag) = self.last_window;
+        let WindowStats {
+            updates_per_s,
+            env_steps_per_s,
+            policy_lag_max: lag,
+            ..
+        } = self.last_window;
         self.prom.set(prom::Snapshot {
             env_steps: p.env_steps,
             critic_updates: p.critic_updates,
