@@ -133,6 +133,10 @@ fn pointmaze_test_config_trains_to_its_bar() {
     assert_reached(&summary, BAR);
     assert_eq!(summary["sessions"], 1);
     assert_eq!(summary["actor_respawns"], 0, "no actor died");
+    assert_eq!(
+        summary["learner_counters"], "final",
+        "the learner answered once the actors had stopped"
+    );
     let shm = summary["transitions_shm"].as_u64().unwrap();
     assert!(
         shm >= summary["env_steps"].as_u64().unwrap(),

@@ -43,8 +43,9 @@ use tonic::transport::Channel;
 
 use children::{describe, find_setpriv, Child, Launcher};
 use progress::{
-    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, Ending, EvalTracker,
-    LearnerCounters, RespawnLimiter, RolledBack, RunProgress, RunShape, ServiceRestart, Summary,
+    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, CountersSource, Ending,
+    EvalTracker, LearnerCounters, RespawnLimiter, RolledBack, RunProgress, RunShape,
+    ServiceRestart, Summary,
 };
 
 /// How long a service may take to print its ready line (the learner loads demos and may restore
@@ -56,6 +57,8 @@ const STATE_EVERY: u32 = 4;
 const PROGRESS_EVERY: u32 = 60;
 /// Grace periods between SIGTERM and SIGKILL.
 const ACTOR_GRACE: Duration = Duration::from_secs(5);
+/// Tries at the learner's final Health, each under `poll_health`'s own timeout.
+const FINAL_HEALTH_TRIES: u32 = 3;
 const LEARNER_GRACE: Duration = Duration::from_secs(120);
 const SERVER_GRACE: Duration = Duration::from_secs(20);
 /// A service that dies more often than this within the window cannot run: the run stops.
@@ -828,6 +831,7 @@ impl Session {
         }
         self.last_health = Some((now, h.updates));
         self.counters = LearnerCounters {
+            source: CountersSource::LastPoll,
             env_steps: h.env_steps,
             updates: h.updates,
             policy_version: h.policy_version,
@@ -902,16 +906,24 @@ impl Session {
     }
 
     /// Stops every child in order (actors, learner, curriculum server) after taking the
-    /// curriculum's final state, then writes the summary.
+    /// curriculum's final state, then writes the summary. The learner's counters are taken once
+    /// the actors have stopped, all from one reply, so they agree with each other.
     async fn finish(mut self, ending: Result<Ending>) -> Result<Summary> {
         if let Some(view) = self.fetch_state().await {
             self.take_view(view);
         }
-        self.poll_health().await;
         self.bar.finish();
         for a in &mut self.actors {
             if let Some(c) = a.child.as_mut() {
                 c.stop(ACTOR_GRACE).await;
+            }
+        }
+        // A loaded machine can hold one answer past its timeout: a few tries before settling for
+        // the last periodic reply.
+        for _ in 0..FINAL_HEALTH_TRIES {
+            if self.poll_health().await {
+                self.counters.source = CountersSource::Final;
+                break;
             }
         }
         if let Some(l) = self.learner.as_mut() {

@@ -257,6 +257,11 @@ pub struct Summary {
     pub error: Option<String>,
     /// Env steps the learner received (its Health), and its critic updates.
     pub env_steps: u64,
+    /// `final`: the learner's counters below are one Health reply taken after the actors stopped.
+    /// `last_poll`: it did not answer then; env steps are at least the last eval's, and the
+    /// transport counts can trail them by a few batches.
+    #[serde(default)]
+    pub learner_counters: CountersSource,
     pub updates: u64,
     pub policy_version: u64,
     pub wall_s: f64,
@@ -395,9 +400,23 @@ pub struct UncountedSteps<'a> {
     pub restarts: &'a [ServiceRestart],
 }
 
-/// The learner's counters as `rfcl train` last saw them.
+/// Which Health reply a summary's learner counters come from.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CountersSource {
+    /// The learner's answer after the actors had stopped: every counter is from that one moment,
+    /// so the transport counts cover the env steps.
+    Final,
+    /// The learner did not answer at the end (it had died or was stuck): the last periodic
+    /// reply, which can trail the run's end by a few batches.
+    #[default]
+    LastPoll,
+}
+
+/// The learner's counters as `rfcl train` last saw them, all from one Health reply.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct LearnerCounters {
+    pub source: CountersSource,
     pub env_steps: u64,
     pub updates: u64,
     pub policy_version: u64,
@@ -429,11 +448,12 @@ pub fn summarize(
     wall_s: f64,
     ending: Ending,
 ) -> Summary {
-    // The last Health poll can predate the learner's last steps (it exits when the run ends),
-    // while each eval carries the learner's count when it published the evaluated policy: the
-    // learner received at least that many.
+    // Without the learner's final answer the last periodic one can predate its last steps, while
+    // each eval carries the learner's count when it published the evaluated policy: the learner
+    // received at least that many. Only then are env steps raised past the reply's own, and the
+    // summary says so (`learner_counters: last_poll`); a final reply is taken as it is.
     let mut learner = learner;
-    if let Some(last) = evals.last() {
+    if let (CountersSource::LastPoll, Some(last)) = (learner.source, evals.last()) {
         learner.env_steps = learner.env_steps.max(last.env_steps);
         learner.policy_version = learner.policy_version.max(last.policy_version);
     }
@@ -469,6 +489,7 @@ pub fn summarize(
         ending,
         error: None,
         env_steps: learner.env_steps,
+        learner_counters: learner.source,
         updates: learner.updates,
         policy_version: learner.policy_version,
         wall_s,
@@ -703,6 +724,7 @@ mod tests {
             ..RunProgress::default()
         };
         let learner = LearnerCounters {
+            source: CountersSource::Final,
             env_steps: 3100,
             updates: 1550,
             policy_version: 40,
@@ -738,9 +760,30 @@ mod tests {
         assert_eq!((a.learner_minus_curriculum, a.in_flight_at_most), (200, 20));
         assert_eq!(a.unreported_episodes, 10);
         assert!(!a.explained);
-        // A Health poll older than the last eval's policy: the learner had received at least the
-        // env steps that policy carries, so no milestone lies beyond the summary's env steps.
+        assert_eq!(json["learner_counters"], "final");
+        // A final reply is taken as it is: its transport counts and env steps are one moment's.
+        let final_reply = LearnerCounters {
+            env_steps: 2950,
+            shm_records: 2900,
+            grpc_records: 50,
+            ..learner
+        };
+        let s = summarize(
+            &view,
+            &t,
+            final_reply,
+            &progress,
+            shape,
+            60.0,
+            Ending::EvalSuccess,
+        );
+        assert_eq!((s.env_steps, s.transitions_shm), (2950, 2900));
+        assert_eq!(s.learner_counters, CountersSource::Final);
+        // Only a periodic poll, older than the last eval's policy: the learner had received at
+        // least the env steps that policy carries, so no milestone lies beyond the summary's env
+        // steps, and the summary says its transport counts may trail them.
         let stale = LearnerCounters {
+            source: CountersSource::LastPoll,
             env_steps: 2950,
             ..learner
         };
@@ -753,7 +796,11 @@ mod tests {
             60.0,
             Ending::EvalSuccess,
         );
-        assert_eq!(s.env_steps, 3000);
+        assert_eq!((s.env_steps, s.policy_version), (3000, 40));
+        assert_eq!(
+            serde_json::to_value(&s).unwrap()["learner_counters"],
+            "last_poll"
+        );
         assert!(s
             .to_success
             .iter()
