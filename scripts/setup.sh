@@ -22,7 +22,9 @@ SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
 # ---------------------------------------------------------------- system packages
 # libpython3.11-dev: rfcl-sim-worker embeds Python (pyo3 links libpython3.11.so).
 APT_PKGS=(pkg-config libhdf5-dev protobuf-compiler chromium curl ca-certificates libpython3.11-dev)
-BACKPORTS_PKGS=(mesa-vulkan-drivers libvulkan1)
+# Mesa from backports: Vulkan (lavapipe) for ManiSkill's CPU renderer, EGL for MuJoCo's
+# (MetaWorld and Adroit eval videos render headless with MUJOCO_GL=egl).
+BACKPORTS_PKGS=(mesa-vulkan-drivers libvulkan1 libegl1 libegl-mesa0)
 missing=()
 for p in "${APT_PKGS[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
 mesa_ok=0
@@ -30,6 +32,7 @@ if dpkg -s mesa-vulkan-drivers >/dev/null 2>&1; then
   v=$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers)
   dpkg --compare-versions "$v" ge 24.3 && mesa_ok=1
 fi
+for p in "${BACKPORTS_PKGS[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || mesa_ok=0; done
 if [ ${#missing[@]} -eq 0 ] && [ $mesa_ok = 1 ]; then
   step "system packages: present (${APT_PKGS[*]}, Mesa >= 24.3)"
 else

@@ -14,7 +14,7 @@ pub fn check(set: &DemoSet, config: Option<&Path>) -> Result<bool> {
     let mut env: Box<dyn Env> = match (config, set.env_id.as_deref()) {
         (Some(path), _) => {
             let cfg = rfcl_core::config::resolve_file(path, &[])?;
-            rfcl_actor::suite::make_env(&cfg.env, 0, set.obs_dim, set.action_dim)
+            rfcl_actor::suite::make_env(&cfg.env, 0, set.obs_dim, set.action_dim, None)
                 .with_context(|| format!("making the env of {}", path.display()))?
         }
         (None, Some(pointmaze::ENV_ID)) => Box::new(PointMaze::new(0)),

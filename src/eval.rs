@@ -11,7 +11,7 @@ use rfcl_core::lease::{LeaseKind, ResetArgs, ResetLease};
 use rfcl_policy::{PolicyDescription, PolicyNet};
 use serde::Serialize;
 
-use crate::video::{frame_side, pointmaze_frames, video_name, write_gif, PointStep};
+use rfcl_actor::video::{encode_gif, video_name, Recorder};
 
 /// Held-out seeds start this far above `eval_env.seed_offset`: the evaluations during training
 /// use `seed_offset + 0, 1, 2, ...` and the forward curriculum's levels are `0..num_seeds`.
@@ -64,7 +64,7 @@ impl EvalReport {
 }
 
 /// Runs `episodes` episodes of the run's env from held-out seeds with the run's exported policy;
-/// with `video`, writes each episode there as an animated GIF (PointMaze).
+/// with `video`, writes each episode there as an animated GIF from the env's own renderer.
 pub fn eval(run_dir: &Path, episodes: u32, video: Option<&Path>) -> Result<EvalReport> {
     if episodes == 0 {
         bail!("-n must be at least 1");
@@ -100,12 +100,6 @@ pub fn eval(run_dir: &Path, episodes: u32, video: Option<&Path>) -> Result<EvalR
         None
     };
     if let Some(dir) = video {
-        if cfg.env.env_id != rfcl_actor::pointmaze::ENV_ID {
-            bail!(
-                "--video: rfcl draws PointMaze episodes only so far; {} has no renderer here yet",
-                cfg.env.env_id
-            );
-        }
         std::fs::create_dir_all(dir)
             .with_context(|| format!("creating the video directory {}", dir.display()))?;
     }
@@ -115,6 +109,7 @@ pub fn eval(run_dir: &Path, episodes: u32, video: Option<&Path>) -> Result<EvalR
         derive_seed(cfg.seed, EVAL_ACTOR_ID, 0),
         obs_dim,
         action_dim,
+        video.map(|_| cfg.eval_env.video_size),
     )?;
     let horizon = cfg
         .eval_env
@@ -145,9 +140,7 @@ pub fn eval(run_dir: &Path, episodes: u32, video: Option<&Path>) -> Result<EvalR
     let (mut at_end, mut once, mut ret, mut len) = (0u32, 0u32, 0.0f64, 0u64);
     let mut outcomes = Vec::with_capacity(episodes as usize);
     let mut videos = Vec::new();
-    let mut drawn: Vec<PointStep> = Vec::new();
     for k in 0..episodes {
-        drawn.clear();
         rollout.begin(
             0,
             ResetLease {
@@ -166,22 +159,29 @@ pub fn eval(run_dir: &Path, episodes: u32, video: Option<&Path>) -> Result<EvalR
                 level: 0,
             },
         )?;
+        let mut recorder = match video {
+            Some(_) => Some(Recorder::new(rollout.render(0)?)),
+            None => None,
+        };
         loop {
             out.clear();
             rollout.step(Some(&mut policy), &mut out)?;
-            if video.is_some() {
-                if let Some(t) = out.transitions.first() {
-                    if drawn.is_empty() {
-                        drawn.extend(PointStep::from_obs(&t.obs));
-                    }
-                    drawn.extend(PointStep::from_obs(&t.next_obs));
+            let last = !out.finished.is_empty();
+            if let Some(rec) = recorder.as_mut() {
+                if rec.step(last) {
+                    rec.push(rollout.render(0)?);
                 }
             }
             if let Some((_, r)) = out.finished.pop() {
                 let seed = first_seed + u64::from(k);
-                if let Some(dir) = video {
-                    let path = dir.join(video_name(k, seed, r.success_at_end, r.episode_return));
-                    write_gif(&path, frame_side(), &pointmaze_frames(&drawn))?;
+                if let (Some(dir), Some(rec)) = (video, recorder.take()) {
+                    let label = format!("episode{k:03}");
+                    let path =
+                        dir.join(video_name(&label, seed, r.success_at_end, r.episode_return));
+                    let gif = encode_gif(rec.frames())
+                        .with_context(|| format!("encoding {}", path.display()))?;
+                    std::fs::write(&path, gif)
+                        .with_context(|| format!("writing {}", path.display()))?;
                     videos.push(path);
                 }
                 outcomes.push((seed, r.success_at_end));
@@ -286,8 +286,8 @@ mod tests {
         let videos = dir.path().join("videos");
         let report = eval(dir.path(), 2, Some(&videos)).unwrap();
         assert_eq!(report.videos.len(), 2);
-        let horizon = rfcl_actor::pointmaze::HORIZON;
-        let expected_frames = horizon / crate::video::STEPS_PER_FRAME + 1;
+        let horizon = rfcl_actor::pointmaze::HORIZON as u32;
+        let expected_frames = horizon / rfcl_actor::video::STEPS_PER_FRAME + 1;
         for (path, &(seed, success)) in report.videos.iter().zip(&report.outcomes) {
             let name = path.file_name().unwrap().to_str().unwrap();
             let outcome = if success { "success" } else { "failure" };
@@ -302,7 +302,9 @@ mod tests {
             while decoder.read_next_frame().unwrap().is_some() {
                 frames += 1;
             }
-            assert_eq!(frames, expected_frames, "{name}");
+            assert_eq!(frames, expected_frames as usize, "{name}");
+            let side = rfcl_actor::pointmaze::draw::frame_side();
+            assert_eq!(decoder.width() as usize, side, "{name}");
         }
     }
 }

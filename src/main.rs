@@ -15,7 +15,6 @@ mod demos_sim;
 mod demos_suites;
 mod eval;
 mod train;
-mod video;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -67,8 +66,8 @@ enum Command {
         /// Episodes to run.
         #[arg(short = 'n', long, default_value_t = 100)]
         episodes: u32,
-        /// Write each episode into this directory as an animated GIF, named by its seed,
-        /// success and return (PointMaze, drawn by rfcl).
+        /// Write each episode into this directory as an animated GIF from the simulator's own
+        /// renderer (PointMaze: drawn by rfcl), named by its seed, success and return.
         #[arg(long, value_name = "DIR")]
         video: Option<PathBuf>,
     },

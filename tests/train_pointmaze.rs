@@ -12,6 +12,8 @@ mod train_support;
 
 use std::time::Duration;
 
+use rfcl_core::video::VideoMeta;
+
 use train_support::*;
 
 /// The mean success of the last 5 evaluations at which the run stops.
@@ -107,6 +109,39 @@ fn pointmaze_test_config_trains_to_its_bar() {
     });
     assert_eq!(panel["address"], processes["learner"], "{panel}");
     assert_eq!(panel["error"], serde_json::Value::Null, "{panel}");
+    // The eval actor records its first evaluation's first episode (eval_env.video_every), sends
+    // it to the curriculum server over gRPC, which keeps it in the run directory and serves it
+    // from the dashboard.
+    let video = wait_for(Duration::from_secs(120), || {
+        let state = curriculum_state(&processes)?;
+        serde_json::from_value::<VideoMeta>(state["videos"].as_array()?.first()?.clone()).ok()
+    })
+    .unwrap_or_else(|| panic!("no eval video:\n{}", training.stderr()));
+    let video_name = video.file_name();
+    let served = std::process::Command::new("curl")
+        .args([
+            "-sf",
+            &format!(
+                "{}videos/{video_name}",
+                processes["dashboard"].as_str().unwrap()
+            ),
+        ])
+        .output()
+        .unwrap();
+    assert!(served.status.success(), "GET /videos/{video_name}");
+    assert_eq!(
+        served.stdout,
+        std::fs::read(run_dir.join("videos").join(&video_name)).unwrap()
+    );
+    // A whole 300-step episode: the reset state and every third step.
+    let mut decoder = gif::DecodeOptions::new()
+        .read_info(&served.stdout[..])
+        .unwrap();
+    let mut frames = 0;
+    while decoder.read_next_frame().unwrap().is_some() {
+        frames += 1;
+    }
+    assert_eq!(frames, 101, "{video_name}");
     // And a real browser renders it.
     let dom = rfcl_testkit::browser::dump_dom(
         &dir.path().join("chromium-profile"),
@@ -116,6 +151,8 @@ fn pointmaze_test_config_trains_to_its_bar() {
         "<h2>Learner</h2>",
         "updates/s <b>",
         "where the learner's time goes",
+        "eval episode(s) recorded",
+        "href=\"/videos/v",
     ] {
         assert!(dom.contains(expected), "{expected}:\n{dom}");
     }
@@ -135,7 +172,7 @@ fn pointmaze_test_config_trains_to_its_bar() {
     assert_eq!(summary["actor_respawns"], 0, "no actor died");
     assert_eq!(
         summary["learner_counters"], "final",
-        "the learner answered once the actors had stopped"
+        "the learner wrote its final counts when it stopped"
     );
     let shm = summary["transitions_shm"].as_u64().unwrap();
     assert!(

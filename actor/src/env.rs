@@ -21,6 +21,8 @@
 
 pub use rfcl_core::demo::{StateEntry, StateKind, StateLayout};
 
+pub use crate::video::Frame;
+
 /// Why an env refused a call. Each variant names what was wrong with the input.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum EnvError {
@@ -39,6 +41,9 @@ pub enum EnvError {
     /// The reset options are not ones this env understands.
     #[error("reset options are invalid: {reason}")]
     InvalidOptions { reason: String },
+    /// The env was made without a renderer ([`Env::render`]).
+    #[error("this env has no renderer{hint}")]
+    NoRenderer { hint: String },
     /// The simulator behind the env failed: a Python exception (the message carries its
     /// traceback), or a worker process that crashed or hung twice in a row (crate::python).
     #[error("the simulator failed: {message}")]
@@ -103,6 +108,15 @@ pub trait Env: Send {
 
     /// The current state, laid out as [`Env::state_layout`] says.
     fn get_state(&self) -> Vec<f32>;
+
+    /// The current state as an image, from the simulator's own renderer (PointMaze: drawn by
+    /// rfcl), for eval videos. Python envs render only when made with a frame size
+    /// ([`crate::suite::make_env`]); envs without a renderer say so.
+    fn render(&mut self) -> Result<Frame, EnvError> {
+        Err(EnvError::NoRenderer {
+            hint: String::new(),
+        })
+    }
 
     /// Simulator worker restarts so far: a Python env restarts a crashed or hung worker and
     /// replays the episode in flight (crate::python), which the actor reports so that the run

@@ -30,6 +30,7 @@ pub mod replay;
 pub mod retry;
 pub mod rollout;
 pub mod suite;
+pub mod video;
 
 pub use env::{Env, EnvError, StateEntry, StateKind, StateLayout, StepOutcome};
 pub use pointmaze::PointMaze;

@@ -23,7 +23,7 @@ use rand_chacha::ChaCha8Rng;
 use rfcl_core::lease::{EpisodeReport, LeaseKind, ResetLease};
 use rfcl_core::transition::Transition;
 
-use crate::env::{Env, EnvError};
+use crate::env::{Env, EnvError, Frame};
 use crate::policy::{explores_uniformly, uniform_action, PolicyHandle};
 
 /// Why a rollout could not go on: the env refused a lease's reset or an action. Both mean the
@@ -57,6 +57,8 @@ pub enum RolloutError {
     PolicyActionDim { expected: usize, got: usize },
     #[error("the action scale (docs/ALGORITHM.md 6.4) does not fit env {env}: {problem}")]
     ActionScale { env: usize, problem: String },
+    #[error("env {env} could not render: {error}")]
+    Render { env: usize, error: EnvError },
 }
 
 /// Spec 6.4 (`train.data_action_scale`): the env action for agent action `a` under the
@@ -236,6 +238,19 @@ impl Rollout {
         (0..self.slots.len())
             .filter(|&i| self.slots[i].episode.is_none())
             .collect()
+    }
+
+    /// Env `env`'s current state as an image (an eval video's frame): after [`Rollout::begin`],
+    /// the reset state; after a step that finished its episode, that episode's last state.
+    pub fn render(&mut self, env: usize) -> Result<Frame, RolloutError> {
+        let envs = self.slots.len();
+        let slot = self
+            .slots
+            .get_mut(env)
+            .ok_or(RolloutError::NoSuchEnv { env, envs })?;
+        slot.env
+            .render()
+            .map_err(|error| RolloutError::Render { env, error })
     }
 
     /// Envs running an episode.

@@ -71,18 +71,23 @@ fn python_error(env: &EnvConfig, e: python::PythonEnvError) -> SuiteError {
 
 /// A new env for `env` whose RNG starts from `seed` (see [`crate::rollout::derive_seed`]), checked
 /// against the dims the run expects (`expected_obs_dim`, `expected_action_dim`: from the learner's
-/// run description, which come from the demos).
+/// run description, which come from the demos). With `render_size`, a Python simulator renders
+/// square frames of that many pixels ([`Env::render`]); PointMaze always renders, at its own size.
 pub fn make_env(
     env: &EnvConfig,
     seed: u64,
     expected_obs_dim: usize,
     expected_action_dim: usize,
+    render_size: Option<u32>,
 ) -> Result<Box<dyn Env>, SuiteError> {
     check_supported(env)?;
     let made: Box<dyn Env> = match env.suite {
         Suite::Pointmaze => Box::new(PointMaze::new(seed)),
         _ => {
-            let spec = WorkerSpec::from_env_config(env).map_err(|e| python_error(env, e))?;
+            let mut spec = WorkerSpec::from_env_config(env).map_err(|e| python_error(env, e))?;
+            if let Some(side) = render_size {
+                spec = spec.with_render_size(side);
+            }
             Box::new(PythonEnv::start(spec, seed).map_err(|e| python_error(env, e))?)
         }
     };
@@ -110,12 +115,12 @@ mod tests {
     fn pointmaze_is_made_and_checked() {
         let cfg = EnvConfig::default();
         assert_eq!(native_dims(&cfg), Ok((7, 2)));
-        let env = make_env(&cfg, 3, 7, 2).unwrap();
+        let env = make_env(&cfg, 3, 7, 2, None).unwrap();
         assert_eq!(
             (env.obs_dim(), env.action_dim(), env.horizon()),
             (7, 2, 300)
         );
-        let err = make_env(&cfg, 3, 8, 2).err().unwrap();
+        let err = make_env(&cfg, 3, 8, 2, None).err().unwrap();
         assert_eq!(
             err.to_string(),
             "the run expects obs_dim 8, but env 'PointMaze-v0' has 7"
@@ -123,7 +128,7 @@ mod tests {
         let mut wrong = cfg.clone();
         wrong.env_id = "PointMaze-Large".into();
         assert!(matches!(
-            make_env(&wrong, 3, 7, 2).err().unwrap(),
+            make_env(&wrong, 3, 7, 2, None).err().unwrap(),
             SuiteError::UnknownPointMaze { .. }
         ));
     }

@@ -3,7 +3,9 @@
 //! * a state round trip (set, then get) for each of the four ManiSkill3 tasks (spec 7.1, 12.13);
 //! * a killed worker is detected, restarted, and the episode in flight goes on where it was; a hung
 //!   one is killed at the call deadline and replaced the same way;
-//! * Python exceptions reach Rust with their traceback, at start-up and during a reset.
+//! * Python exceptions reach Rust with their traceback, at start-up and during a reset;
+//! * a worker made with a frame size renders the simulator's frames (eval videos); one without
+//!   says how to get one.
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rfcl_actor::env::{Env, EnvError};
@@ -137,6 +139,35 @@ fn a_hung_worker_is_killed_at_the_deadline_and_replaced() {
     assert_eq!(env.restarts(), 1);
     assert_ne!(env.worker_pid(), Some(pid));
     assert!(!std::path::Path::new(&format!("/proc/{pid}")).exists());
+}
+
+#[test]
+fn a_worker_with_a_frame_size_renders_through_the_bridge() {
+    let mut env = PythonEnv::start(spec("PickCube-v1", json!({})).with_render_size(64), 3).unwrap();
+    env.reset_to_seed(Some(3), &json!({})).unwrap();
+    let first = env.render().unwrap();
+    assert_eq!(
+        (first.width, first.height, first.rgb.len()),
+        (64, 64, 64 * 64 * 3)
+    );
+    assert!(
+        first.rgb.chunks(3).any(|p| p != &first.rgb[..3]),
+        "a frame of one colour"
+    );
+    for a in actions(10, env.action_dim(), 5) {
+        env.step(&a).unwrap();
+    }
+    assert_ne!(env.render().unwrap().rgb, first.rgb, "the arm moved");
+    // The frames encode as a video.
+    let gif = rfcl_actor::video::encode_gif(&[first.clone(), first]).unwrap();
+    assert_eq!(&gif[..6], b"GIF89a");
+
+    let mut plain = PythonEnv::start(spec("PickCube-v1", json!({})), 3).unwrap();
+    let err = plain.render().unwrap_err();
+    assert!(
+        matches!(&err, EnvError::NoRenderer { hint } if hint.contains("render_size")),
+        "{err:?}"
+    );
 }
 
 #[test]

@@ -12,8 +12,10 @@
 pub mod atomic;
 pub mod config;
 pub mod demo;
+pub mod final_counters;
 pub mod lease;
 pub mod maze;
 pub mod transition;
+pub mod video;
 
 pub use config::RunConfig;

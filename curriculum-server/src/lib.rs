@@ -43,4 +43,5 @@ pub mod server;
 pub mod service;
 pub mod snapshot;
 pub mod state;
+pub mod videos;
 pub mod views;

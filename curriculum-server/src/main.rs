@@ -10,6 +10,7 @@ use rfcl_core::demo::DemoSet;
 use rfcl_curriculum::server::{serve, Bound};
 use rfcl_curriculum::service::Shared;
 use rfcl_curriculum::state::{demo_metas, unix_now, DemoResets, ServerState};
+use rfcl_curriculum::videos::VideoStore;
 use rfcl_curriculum::{snapshot, Curriculum};
 use rfcl_proto::auth::{ClientAuth, ServerAuth};
 
@@ -112,6 +113,10 @@ async fn run(args: Args) -> Result<()> {
     )
     .with_learner_auth(
         ClientAuth::from_env().context("polling the learner's Health for the dashboard")?,
+    )
+    .with_videos(
+        VideoStore::open(Some(run_dir.clone()))
+            .with_context(|| format!("listing the eval videos in {}", run_dir.display()))?,
     );
     let bound = Bound::bind(
         SocketAddr::new(args.bind, args.port),

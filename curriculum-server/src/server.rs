@@ -18,9 +18,11 @@ use axum::extract::State;
 use axum::http::header;
 use axum::response::{Html, IntoResponse};
 use axum::routing::get;
+use rfcl_core::video::MAX_EVAL_VIDEO_BYTES;
 use rfcl_proto::auth::ServerAuth;
 use rfcl_proto::health;
 use rfcl_proto::v1::curriculum_server::CurriculumServer;
+use rfcl_proto::v1::eval_videos_server::EvalVideosServer;
 use tokio::net::TcpListener;
 use tokio::task::JoinSet;
 use tokio::time::Instant;
@@ -30,6 +32,7 @@ use tonic::service::interceptor::InterceptedService;
 use crate::grpc::CurriculumService;
 use crate::service::Shared;
 use crate::state::unix_now;
+use crate::videos::EvalVideosService;
 use crate::{dashboard, snapshot};
 
 /// The page refreshes itself this often.
@@ -73,7 +76,8 @@ impl Bound {
     }
 }
 
-/// The dashboard's routes: `/` (HTML), `/api/state` (JSON), `/metrics` (Prometheus text).
+/// The dashboard's routes: `/` (HTML), `/api/state` (JSON), `/metrics` (Prometheus text),
+/// `/videos/<name>` (the eval videos the view lists, GIF).
 pub fn dashboard_router(shared: Shared) -> axum::Router {
     async fn page(State(s): State<Shared>) -> Html<String> {
         Html(dashboard::render_html(&s.view(), DASHBOARD_REFRESH_S))
@@ -92,10 +96,26 @@ pub fn dashboard_router(shared: Shared) -> axum::Router {
             text,
         )
     }
+    async fn video(
+        State(s): State<Shared>,
+        axum::extract::Path(name): axum::extract::Path<String>,
+    ) -> axum::response::Response {
+        let store = s.videos.clone();
+        let lookup = name.clone();
+        match tokio::task::spawn_blocking(move || store.read(&lookup)).await {
+            Ok(Some(gif)) => ([(header::CONTENT_TYPE, "image/gif")], gif).into_response(),
+            _ => (
+                axum::http::StatusCode::NOT_FOUND,
+                format!("no eval video named {name:?} in this run\n"),
+            )
+                .into_response(),
+        }
+    }
     axum::Router::new()
         .route("/", get(page))
         .route("/api/state", get(api_state))
         .route("/metrics", get(metrics))
+        .route("/videos/{name}", get(video))
         .with_state(shared)
 }
 
@@ -349,6 +369,10 @@ pub async fn serve(
     })
     .max_decoding_message_size(MAX_REQUEST_BYTES)
     .max_encoding_message_size(MAX_REPLY_BYTES);
+    let videos = EvalVideosServer::new(EvalVideosService {
+        store: shared.videos.clone(),
+    })
+    .max_decoding_message_size(MAX_EVAL_VIDEO_BYTES + MAX_REQUEST_BYTES);
     let oversized = shared.oversized_requests.clone();
     let grpc = rfcl_proto::link::server(auth.server().context("configuring TLS")?)
         .layer(tower::util::MapResponseLayer::new(
@@ -361,6 +385,7 @@ pub async fn serve(
         ))
         .add_service(health)
         .add_service(InterceptedService::new(curriculum, auth.guard.clone()))
+        .add_service(InterceptedService::new(videos, auth.guard.clone()))
         .serve_with_incoming_shutdown(
             tokio_stream::wrappers::TcpListenerStream::new(bound.grpc),
             stopped(&shared),

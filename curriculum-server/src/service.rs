@@ -10,6 +10,7 @@ use tokio::sync::watch;
 use crate::dashboard::DashboardView;
 use crate::learner_link::LearnerLink;
 use crate::state::{unix_now, DemoResets, ServerState};
+use crate::videos::VideoStore;
 use crate::StageStatus;
 
 /// Shared handles of a running server.
@@ -34,6 +35,8 @@ pub struct Shared {
     pub oversized_requests: Arc<AtomicU64>,
     /// The learner's announced address and its last Health answer (the learner panel).
     pub learner: Arc<LearnerLink>,
+    /// Eval videos sent by eval actors (kept in the run directory).
+    pub videos: Arc<VideoStore>,
 }
 
 impl Shared {
@@ -50,6 +53,7 @@ impl Shared {
             snapshot_failures: Arc::new(AtomicU64::new(0)),
             oversized_requests: Arc::new(AtomicU64::new(0)),
             learner: Arc::new(LearnerLink::new(None)),
+            videos: Arc::new(VideoStore::open(None).expect("no directory to list")),
         }
     }
 
@@ -57,6 +61,14 @@ impl Shared {
     pub fn with_learner_auth(self, auth: ClientAuth) -> Self {
         Shared {
             learner: Arc::new(LearnerLink::new(Some(auth))),
+            ..self
+        }
+    }
+
+    /// Keeps eval videos in `store` (the run directory's).
+    pub fn with_videos(self, store: VideoStore) -> Self {
+        Shared {
+            videos: Arc::new(store),
             ..self
         }
     }
@@ -82,6 +94,9 @@ impl Shared {
         view.snapshot_failures = self.snapshot_failures.load(Ordering::Relaxed);
         view.oversized_requests = self.oversized_requests.load(Ordering::Relaxed);
         view.learner = self.learner.panel(now);
+        let videos = self.videos.listing();
+        view.videos = videos.videos;
+        view.videos_refused = videos.refused;
         for bar in &mut view.demos {
             if let Some(&id) = self.demos.episode_ids.get(bar.demo as usize) {
                 bar.episode_id = id;

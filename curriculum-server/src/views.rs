@@ -217,6 +217,8 @@ impl ServerState {
             maze: None,
             // Known only to the service: `Shared::view` fills it in.
             learner: None,
+            videos: Vec::new(),
+            videos_refused: 0,
         }
     }
 }

@@ -23,6 +23,7 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use rfcl_core::config::{Device, RunConfig, StagePlan};
 use rfcl_core::demo::DemoSet;
+use rfcl_core::final_counters::{FinalCounters, FINAL_COUNTERS_FILE};
 use rfcl_learner::checkpoint::{self, Manifest};
 use rfcl_learner::service::{self, LearnerService, RunDescription};
 use rfcl_learner::stages;
@@ -373,7 +374,26 @@ async fn run(args: Args) -> Result<()> {
     if let Some(shm) = shm {
         let _ = tokio::task::spawn_blocking(move || shm.join(Duration::from_secs(5))).await;
     }
-    tracing::info!("transitions taken in: {}", counters.totals());
+    let totals = counters.totals();
+    tracing::info!("transitions taken in: {totals}");
+    if matches!(outcome, Ok(Ok(_))) {
+        let s = status.snapshot();
+        let last = FinalCounters {
+            pid: std::process::id(),
+            env_steps: s.env_steps,
+            updates: s.critic_updates,
+            policy_version: s.policy_version,
+            shm_records: totals.shm_records,
+            grpc_records: totals.grpc_records,
+            shm_lost_records: totals.shm_lost_records,
+            refused_batches: totals.refused_batches,
+        };
+        let path = run_dir.join(FINAL_COUNTERS_FILE);
+        let json = serde_json::to_vec_pretty(&last).expect("counters serialize");
+        if let Err(e) = rfcl_core::atomic::atomic_write(&path, &json) {
+            tracing::warn!("writing {}: {e}", path.display());
+        }
+    }
     match tokio::time::timeout(Duration::from_secs(5), server).await {
         Ok(Ok(Ok(()))) => {}
         Ok(Ok(Err(e))) => tracing::warn!("gRPC server: {e}"),

@@ -1,6 +1,7 @@
 //! The one place where wire types become domain types and back. Every malformed message is
 //! rejected here with an error that names the message and the field.
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
+use rfcl_core::video::{EvalVideo, VideoMeta, MAX_EVAL_VIDEO_BYTES};
 
 use crate::v1;
 
@@ -303,6 +304,62 @@ pub fn learner_addr(request: &v1::WatchStageRequest) -> Result<Option<String>, W
     Ok(Some(raw.to_string()))
 }
 
+/// An `EvalVideo` as the domain value: a GIF (its magic first) of at most
+/// [`MAX_EVAL_VIDEO_BYTES`], with a finite return.
+pub fn eval_video(wire: v1::EvalVideo) -> Result<EvalVideo, WireError> {
+    let bad = |field, problem: String| WireError::new("EvalVideo", field, problem);
+    if wire.gif.len() > MAX_EVAL_VIDEO_BYTES {
+        return Err(bad(
+            "gif",
+            format!(
+                "expected at most {MAX_EVAL_VIDEO_BYTES} bytes, got {}",
+                wire.gif.len()
+            ),
+        ));
+    }
+    if !wire.gif.starts_with(b"GIF89a") && !wire.gif.starts_with(b"GIF87a") {
+        return Err(bad(
+            "gif",
+            format!(
+                "expected an animated GIF (\"GIF89a\" first), got {} bytes starting {:?}",
+                wire.gif.len(),
+                String::from_utf8_lossy(&wire.gif[..wire.gif.len().min(6)])
+            ),
+        ));
+    }
+    if !wire.episode_return.is_finite() {
+        return Err(bad(
+            "episode_return",
+            format!("expected a finite number, got {}", wire.episode_return),
+        ));
+    }
+    Ok(EvalVideo {
+        meta: VideoMeta {
+            policy_version: wire.policy_version,
+            env_steps: wire.policy_env_steps,
+            seed: wire.seed,
+            success_at_end: wire.success_at_end,
+            episode_return: wire.episode_return,
+            actor_id: wire.actor_id,
+        },
+        gif: wire.gif,
+    })
+}
+
+impl From<EvalVideo> for v1::EvalVideo {
+    fn from(v: EvalVideo) -> Self {
+        v1::EvalVideo {
+            actor_id: v.meta.actor_id,
+            policy_version: v.meta.policy_version,
+            policy_env_steps: v.meta.env_steps,
+            seed: v.meta.seed,
+            success_at_end: v.meta.success_at_end,
+            episode_return: v.meta.episode_return,
+            gif: v.gif,
+        }
+    }
+}
+
 /// The two halves of a `ReportAndAcquire` call.
 pub fn report_and_acquire(
     wire: v1::ReportAndAcquireRequest,
@@ -337,6 +394,42 @@ mod tests {
             stage_epoch: 0,
             level: 0,
         }
+    }
+
+    #[test]
+    fn eval_videos_round_trip_and_bad_ones_name_their_field() {
+        let video = EvalVideo {
+            meta: VideoMeta {
+                policy_version: 3,
+                env_steps: 9000,
+                seed: 1_000_002,
+                success_at_end: false,
+                episode_return: 0.0,
+                actor_id: 2,
+            },
+            gif: b"GIF89a rest".to_vec(),
+        };
+        let wire: v1::EvalVideo = video.clone().into();
+        assert_eq!(eval_video(wire.clone()).unwrap(), video);
+        let err = eval_video(v1::EvalVideo {
+            gif: b"\x89PNG\r\n".to_vec(),
+            ..wire.clone()
+        })
+        .unwrap_err();
+        assert_eq!((err.message, err.field), ("EvalVideo", "gif"));
+        assert!(err.problem.contains("animated GIF"), "{err}");
+        let err = eval_video(v1::EvalVideo {
+            gif: vec![b'G'; MAX_EVAL_VIDEO_BYTES + 1],
+            ..wire.clone()
+        })
+        .unwrap_err();
+        assert!(err.problem.contains("at most 8388608 bytes"), "{err}");
+        let err = eval_video(v1::EvalVideo {
+            episode_return: f64::NAN,
+            ..wire
+        })
+        .unwrap_err();
+        assert_eq!(err.field, "episode_return");
     }
 
     #[test]

@@ -14,6 +14,11 @@ Requests:
   observation.
 * ``OP_STEP``: ``f32 action...``. Answers ``u8 success, f32 obs...``.
 * ``OP_GET_STATE`` (empty): answers the flat state.
+* ``OP_RENDER`` (empty): answers ``u32 width, u32 height``, then ``height * width * 3`` bytes of
+  RGB (``uint8``, row-major, top row first: pixel ``(row, col)`` channel ``c`` is byte
+  ``8 + (row * width + col) * 3 + c``), a frame of the current state (:meth:`Adapter.render`).
+  Only adapters made with the ``render_size`` option render (``width == height == render_size``);
+  otherwise the answer is ``STATUS_BAD_INPUT`` naming the option.
 
 Statuses: ``STATUS_OK``; ``STATUS_BAD_INPUT`` (an :class:`AdapterError`: the message, verbatim);
 ``STATUS_EXCEPTION`` (any other exception: its formatted traceback). A request never raises out of
@@ -32,14 +37,17 @@ import numpy as np
 from . import adapters
 from .adapters.base import AdapterError
 
-OP_HELLO, OP_RESET, OP_STEP, OP_GET_STATE = 0, 1, 2, 3
+OP_HELLO, OP_RESET, OP_STEP, OP_GET_STATE, OP_RENDER = 0, 1, 2, 3, 4
 STATUS_OK, STATUS_BAD_INPUT, STATUS_EXCEPTION = 0, 1, 2
 
 _RESET_HEAD = struct.Struct("<BQI")
+#: The head of an ``OP_RENDER`` answer: width, height.
+_FRAME_HEAD = struct.Struct("<II")
 
 
 class Bridge:
-    """One adapter, made from the run config's env options (``kwargs_json``: a JSON object)."""
+    """One adapter, made from the run config's env options (``kwargs_json``: a JSON object, e.g.
+    ``{"max_episode_steps": 50, "render_size": 256}``; ``render_size`` enables ``OP_RENDER``)."""
 
     def __init__(self, suite: str, env_id: str, kwargs_json: str = "{}") -> None:
         kwargs = json.loads(kwargs_json or "{}")
@@ -89,6 +97,8 @@ class Bridge:
             return _pack(obs)
         if op == OP_GET_STATE:
             return _pack(a.get_state())
+        if op == OP_RENDER:
+            return _pack_frame(a.render())
         if op == OP_HELLO:
             return self.hello()
         raise AdapterError(f"unknown request op {op}")
@@ -99,3 +109,13 @@ class Bridge:
 
 def _pack(v: np.ndarray) -> bytes:
     return np.ascontiguousarray(v, dtype="<f4").tobytes()
+
+
+def _pack_frame(frame: np.ndarray) -> bytes:
+    """An ``OP_RENDER`` answer: the frame's width and height, then its RGB bytes, top row first."""
+    f = np.asarray(frame)
+    if f.ndim != 3 or f.shape[2] != 3 or f.dtype != np.uint8:
+        raise ValueError(f"render() returned a {f.dtype} array of shape {f.shape}, not an "
+                         "(H, W, 3) uint8 RGB frame")
+    height, width = f.shape[:2]
+    return _FRAME_HEAD.pack(width, height) + np.ascontiguousarray(f).tobytes()

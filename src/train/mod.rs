@@ -33,6 +33,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
+use rfcl_core::final_counters::{FinalCounters, FINAL_COUNTERS_FILE};
 use rfcl_curriculum::dashboard::DashboardView;
 use rfcl_proto::auth::{self, AuthChannel, ClientAuth, Token};
 use rfcl_proto::v1;
@@ -57,8 +58,6 @@ const STATE_EVERY: u32 = 4;
 const PROGRESS_EVERY: u32 = 60;
 /// Grace periods between SIGTERM and SIGKILL.
 const ACTOR_GRACE: Duration = Duration::from_secs(5);
-/// Tries at the learner's final Health, each under `poll_health`'s own timeout.
-const FINAL_HEALTH_TRIES: u32 = 3;
 const LEARNER_GRACE: Duration = Duration::from_secs(120);
 const SERVER_GRACE: Duration = Duration::from_secs(20);
 /// A service that dies more often than this within the window cannot run: the run stops.
@@ -309,6 +308,8 @@ struct Session {
     bar: Bar,
     updates_per_s: f64,
     last_health: Option<(Instant, u64)>,
+    /// The pid of a learner that ended the run by exiting by itself.
+    learner_exited: Option<u32>,
 }
 
 async fn train_async(args: TrainArgs) -> Result<Summary> {
@@ -525,6 +526,7 @@ impl Session {
             bar,
             updates_per_s: 0.0,
             last_health: None,
+            learner_exited: None,
             prep,
         };
         for i in 0..session.actors.len() {
@@ -603,6 +605,7 @@ impl Session {
             if let Some(learner) = self.learner.as_mut() {
                 if let Some(status) = learner.try_wait() {
                     if status.success() {
+                        self.learner_exited = Some(learner.pid);
                         self.learner = None;
                         return Ok(self.ended_by_itself().await);
                     }
@@ -906,8 +909,8 @@ impl Session {
     }
 
     /// Stops every child in order (actors, learner, curriculum server) after taking the
-    /// curriculum's final state, then writes the summary. The learner's counters are taken once
-    /// the actors have stopped, all from one reply, so they agree with each other.
+    /// curriculum's final state, then writes the summary. The learner's counters are its own
+    /// final ones, all from one moment, so they agree with each other.
     async fn finish(mut self, ending: Result<Ending>) -> Result<Summary> {
         if let Some(view) = self.fetch_state().await {
             self.take_view(view);
@@ -918,16 +921,15 @@ impl Session {
                 c.stop(ACTOR_GRACE).await;
             }
         }
-        // A loaded machine can hold one answer past its timeout: a few tries before settling for
-        // the last periodic reply.
-        for _ in 0..FINAL_HEALTH_TRIES {
-            if self.poll_health().await {
-                self.counters.source = CountersSource::Final;
-                break;
-            }
-        }
+        let learner_pid = self.learner.as_ref().map(|l| l.pid).or(self.learner_exited);
         if let Some(l) = self.learner.as_mut() {
             l.stop(LEARNER_GRACE).await;
+        }
+        // The learner's own final counts; a learner that was killed wrote none, and the last
+        // periodic Health reply stands.
+        if let Some(last) = learner_pid.and_then(|pid| read_final_counters(&self.prep.run_dir, pid))
+        {
+            self.counters = last;
         }
         self.server.stop(SERVER_GRACE).await;
         let _ = std::fs::remove_file(self.prep.run_dir.join("processes.json"));
@@ -986,6 +988,26 @@ impl Session {
         }
         Ok(summary)
     }
+}
+
+/// The counters the learner with `pid` wrote when it stopped cleanly
+/// ([`FINAL_COUNTERS_FILE`]); `None` when it wrote none (killed) or the file is an earlier
+/// process's.
+fn read_final_counters(run_dir: &Path, pid: u32) -> Option<LearnerCounters> {
+    let path = run_dir.join(FINAL_COUNTERS_FILE);
+    let last: FinalCounters = serde_json::from_slice(&std::fs::read(&path).ok()?)
+        .inspect_err(|e| tracing::warn!("reading {}: {e}", path.display()))
+        .ok()?;
+    (last.pid == pid).then_some(LearnerCounters {
+        source: CountersSource::Final,
+        env_steps: last.env_steps,
+        updates: last.updates,
+        policy_version: last.policy_version,
+        shm_records: last.shm_records,
+        grpc_records: last.grpc_records,
+        shm_lost_records: last.shm_lost_records,
+        refused_batches: last.refused_batches,
+    })
 }
 
 /// The port of `host:port` or `http://host:port/`.

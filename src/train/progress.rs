@@ -257,9 +257,10 @@ pub struct Summary {
     pub error: Option<String>,
     /// Env steps the learner received (its Health), and its critic updates.
     pub env_steps: u64,
-    /// `final`: the learner's counters below are one Health reply taken after the actors stopped.
-    /// `last_poll`: it did not answer then; env steps are at least the last eval's, and the
-    /// transport counts can trail them by a few batches.
+    /// `final`: the learner's counters below are its own when it stopped, from one moment.
+    /// `last_poll`: it wrote none (killed); they are its last Health reply, with env steps
+    /// raised to at least the last eval's, and the transport counts can trail them by a few
+    /// batches.
     #[serde(default)]
     pub learner_counters: CountersSource,
     pub updates: u64,
@@ -404,16 +405,16 @@ pub struct UncountedSteps<'a> {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CountersSource {
-    /// The learner's answer after the actors had stopped: every counter is from that one moment,
-    /// so the transport counts cover the env steps.
+    /// The learner's own counts when it stopped (`learner_final.json`): every counter is from
+    /// that one moment, so the transport counts cover the env steps.
     Final,
-    /// The learner did not answer at the end (it had died or was stuck): the last periodic
-    /// reply, which can trail the run's end by a few batches.
+    /// The learner wrote none (it was killed): its last periodic Health reply, which can trail
+    /// the run's end by a few batches.
     #[default]
     LastPoll,
 }
 
-/// The learner's counters as `rfcl train` last saw them, all from one Health reply.
+/// The learner's counters as `rfcl train` last saw them, all from one moment.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct LearnerCounters {
     pub source: CountersSource,

@@ -30,12 +30,13 @@
 //! [`demos`] plans collision-free demonstrations through the maze.
 
 pub mod demos;
+pub mod draw;
 pub use rfcl_core::maze;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::env::{Env, EnvError, StateKind, StateLayout, StepOutcome};
+use crate::env::{Env, EnvError, Frame, StateKind, StateLayout, StepOutcome};
 pub use maze::{cell_at, cell_centre, maze, Cell, Maze, MAP};
 
 /// The env id of PointMaze in run configs and demo files.
@@ -130,7 +131,13 @@ pub struct PointMaze {
     collided: bool,
     rng: ChaCha8Rng,
     layout: StateLayout,
+    /// Where the point was at each step since the reset, for [`Env::render`] (at most
+    /// [`TRAIL_MAX`]).
+    trail: Vec<[f32; 2]>,
 }
+
+/// Positions a render's trail keeps: more than an episode's 300 steps.
+const TRAIL_MAX: usize = 4096;
 
 impl PointMaze {
     /// An env whose RNG starts from `seed`, already reset without a seed from that RNG.
@@ -141,6 +148,7 @@ impl PointMaze {
             collided: false,
             rng: ChaCha8Rng::seed_from_u64(seed),
             layout: state_layout(),
+            trail: Vec::new(),
         };
         let cell = env.sample_cell();
         env.place(cell);
@@ -198,6 +206,7 @@ impl PointMaze {
         self.pos = [cx + jx, cy + jy];
         self.vel = [0.0; 2];
         self.collided = false;
+        self.trail.clear();
     }
 
     /// Moves the point by one substep along `axis`, stopping at the face of any wall it would enter.
@@ -343,6 +352,9 @@ impl Env for PointMaze {
 
     fn step(&mut self, action: &[f32]) -> Result<StepOutcome, EnvError> {
         let action = check_action(action)?;
+        if self.trail.len() < TRAIL_MAX {
+            self.trail.push(self.pos);
+        }
         let mut vel = action.map(|a| a * MAX_SPEED);
         for _ in 0..SUBSTEPS {
             self.move_axis(0, &mut vel);
@@ -360,5 +372,9 @@ impl Env for PointMaze {
         let [x, y] = self.pos;
         let [vx, vy] = self.vel;
         vec![x, y, vx, vy, f32::from(u8::from(self.collided))]
+    }
+
+    fn render(&mut self) -> Result<Frame, EnvError> {
+        Ok(draw::draw(&self.trail, self.pos, self.collided))
     }
 }

@@ -52,6 +52,9 @@ pub const START_DEADLINE: Duration = Duration::from_secs(300);
 /// How long one reset, step or state query may take before the worker counts as hung.
 pub const CALL_DEADLINE: Duration = Duration::from_secs(120);
 
+/// The adapter option that makes its simulator render (frame side in pixels).
+pub const RENDER_SIZE: &str = "render_size";
+
 /// Why a Python env could not be made or did not answer.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum PythonEnvError {
@@ -131,6 +134,15 @@ impl WorkerSpec {
             options: options.into(),
             program: worker_program()?,
         })
+    }
+
+    /// The same worker with its simulator rendering square frames of `side` pixels
+    /// ([`Env::render`]).
+    pub fn with_render_size(mut self, side: u32) -> Self {
+        if let Some(options) = self.options.as_object_mut() {
+            options.insert(RENDER_SIZE.into(), side.into());
+        }
+        self
     }
 
     fn args(&self) -> Vec<String> {
@@ -575,6 +587,26 @@ impl Env for PythonEnv {
     fn get_state(&self) -> Vec<f32> {
         self.try_get_state()
             .unwrap_or_else(|e| panic!("PythonEnv::get_state: {e}"))
+    }
+
+    /// The adapter's renderer: only workers made with [`WorkerSpec::with_render_size`] have one.
+    fn render(&mut self) -> Result<crate::video::Frame, EnvError> {
+        if self.spec.options.get(RENDER_SIZE).is_none() {
+            return Err(EnvError::NoRenderer {
+                hint: format!(
+                    " ({} was started without `{RENDER_SIZE}`, which makes the simulator render)",
+                    self.spec.env_id
+                ),
+            });
+        }
+        let out = self.call(protocol::OP_RENDER, &[], "render")?;
+        protocol::render_answer(&out).map_err(|reason| {
+            EnvError::from(PythonEnvError::Protocol {
+                env_id: self.spec.env_id.clone(),
+                during: "render",
+                reason,
+            })
+        })
     }
 
     /// Times the worker was restarted after a crash or a hang.

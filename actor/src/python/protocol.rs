@@ -10,6 +10,7 @@
 //! | [`OP_RESET`] | `u8 has_seed, u64 seed, u32 n, n bytes options JSON, f32 state…` (no state: reset only) | obs |
 //! | [`OP_STEP`] | `f32 action…` | `u8 success, f32 obs…` |
 //! | [`OP_GET_STATE`] | empty | state |
+//! | [`OP_RENDER`] | empty | `u32 width, u32 height`, then `height × width × 3` bytes of RGB, top row first |
 //!
 //! Statuses: [`STATUS_OK`], [`STATUS_BAD_INPUT`] (the adapter's message: bad input, the worker is
 //! fine), [`STATUS_EXCEPTION`] (a Python traceback). The worker writes one unsolicited response
@@ -20,6 +21,7 @@ pub const OP_HELLO: u8 = 0;
 pub const OP_RESET: u8 = 1;
 pub const OP_STEP: u8 = 2;
 pub const OP_GET_STATE: u8 = 3;
+pub const OP_RENDER: u8 = 4;
 
 pub const STATUS_OK: u8 = 0;
 pub const STATUS_BAD_INPUT: u8 = 1;
@@ -109,6 +111,16 @@ pub fn reset_request(seed: Option<u64>, options_json: &str, state: &[f32]) -> Ve
     p
 }
 
+/// The image of an [`OP_RENDER`] answer.
+pub fn render_answer(bytes: &[u8]) -> Result<crate::video::Frame, String> {
+    let (head, rgb) = bytes
+        .split_at_checked(8)
+        .ok_or_else(|| format!("{} bytes, shorter than the 8-byte size header", bytes.len()))?;
+    let width = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+    let height = u32::from_le_bytes([head[4], head[5], head[6], head[7]]);
+    crate::video::Frame::new(width, height, rgb.to_vec()).map_err(|e| e.to_string())
+}
+
 /// The adapter's description (the [`OP_HELLO`] answer).
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
 pub struct Hello {
@@ -153,5 +165,18 @@ mod tests {
         assert_eq!(&p[13..15], b"{}");
         assert_eq!(get_f32s(&p[15..]).unwrap(), vec![1.5]);
         assert!(get_f32s(&[0, 0, 0]).is_none());
+    }
+
+    #[test]
+    fn render_answers_are_sized_by_their_header() {
+        let mut p = Vec::new();
+        p.extend_from_slice(&2u32.to_le_bytes());
+        p.extend_from_slice(&1u32.to_le_bytes());
+        p.extend_from_slice(&[1, 2, 3, 4, 5, 6]);
+        let f = render_answer(&p).unwrap();
+        assert_eq!((f.width, f.height, f.rgb), (2, 1, vec![1, 2, 3, 4, 5, 6]));
+        let err = render_answer(&p[..13]).unwrap_err();
+        assert!(err.contains("has 5 bytes of RGB, not 6"), "{err}");
+        assert!(render_answer(&p[..5]).unwrap_err().contains("header"));
     }
 }

@@ -15,6 +15,7 @@ pub(super) const ALIASES: &[(&str, &str)] = &[("sac.num_qs", "sac.target_pool")]
 pub(super) const RENAMED: &[(&str, &str)] = &[
     ("num_eval_envs", "eval_env.num_envs"),
     ("eval_use_orig_env", "train.use_orig_env_for_eval"),
+    ("save_eval_video", "eval_env.video_every"),
 ];
 
 /// Similarity (normalised Damerau-Levenshtein) a key needs to be suggested for a typo.

@@ -70,6 +70,12 @@ pub struct EvalEnvConfig {
     pub max_episode_steps: Option<u32>,
     /// Eval seeds start here (held out from the forward curriculum's levels).
     pub seed_offset: u64,
+    /// Every this many evaluations, an eval actor records its first episode as a video and sends
+    /// it to the curriculum server, whose dashboard links it from the eval table; 0 = never.
+    pub video_every: u32,
+    /// Side of the videos' square frames in pixels, for simulators that render (PointMaze is
+    /// drawn at its own size).
+    pub video_size: u32,
 }
 
 /// Where the SAC maths run.
@@ -500,6 +506,8 @@ impl Default for EvalEnvConfig {
             num_envs: 2,
             max_episode_steps: None,
             seed_offset: 1_000_000,
+            video_every: 0,
+            video_size: 256,
         }
     }
 }

@@ -9,6 +9,10 @@ use super::{
     TrainMode,
 };
 
+/// The range of `eval_env.video_size`: the actors' video encoder takes frames up to 1024 pixels.
+pub const MIN_VIDEO_SIZE: u32 = 16;
+pub const MAX_VIDEO_SIZE: u32 = 1024;
+
 impl RunConfig {
     /// Checks every value against its allowed range and the rules between options. Returns the
     /// first violation; [`resolve_file`](super::resolve_file) calls this and adds which file set
@@ -65,6 +69,16 @@ impl RunConfig {
             },
         )?;
         at_least_opt("eval_env.max_episode_steps", eval.max_episode_steps, 1)?;
+        ensure(
+            (MIN_VIDEO_SIZE..=MAX_VIDEO_SIZE).contains(&eval.video_size),
+            "eval_env.video_size",
+            || {
+                format!(
+                    "must be {MIN_VIDEO_SIZE}-{MAX_VIDEO_SIZE} pixels, got {}",
+                    eval.video_size
+                )
+            },
+        )?;
         let levels = u64::from(self.forward.num_seeds);
         ensure(eval.seed_offset >= levels, "eval_env.seed_offset", || {
             format!(

@@ -6,6 +6,7 @@ use super::charts::{
     progress_svg, PROGRESS_LEGEND,
 };
 use super::view::{DashboardView, LearnerPanel, LevelRow};
+use rfcl_core::video::VideoMeta;
 
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
@@ -235,15 +236,39 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         );
     }
     if !view.evals.is_empty() {
-        h.push_str("<h2>Evaluation</h2>\n<table><tr><th>policy version</th><th>env steps</th><th>episodes</th><th>success at end</th><th>success once</th><th>return</th></tr>\n");
+        h.push_str("<h2>Evaluation</h2>\n<table id=\"evals\"><tr><th>policy version</th><th>env steps</th><th>episodes</th><th>success at end</th><th>success once</th><th>return</th><th>video</th></tr>\n");
         for e in view.evals.iter().rev().take(10) {
             let _ = writeln!(
                 h,
-                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td><td>{:.1}</td></tr>",
-                e.policy_version, e.env_steps, e.episodes, e.success_at_end, e.success_once, e.mean_return
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td><td>{:.1}</td><td>{}</td></tr>",
+                e.policy_version,
+                e.env_steps,
+                e.episodes,
+                e.success_at_end,
+                e.success_once,
+                e.mean_return,
+                video_links(&view.videos, e.policy_version)
             );
         }
         h.push_str("</table>\n");
+    }
+    if !view.videos.is_empty() || view.videos_refused > 0 {
+        let _ = write!(h, "<p>{} eval episode(s) recorded", view.videos.len());
+        if let Some(last) = view.videos.last() {
+            let _ = write!(
+                h,
+                "; the latest: {}",
+                video_link(last, &format!("policy v{}", last.policy_version))
+            );
+        }
+        if view.videos_refused > 0 {
+            let _ = write!(
+                h,
+                "; <span class=err>{} refused</span>",
+                view.videos_refused
+            );
+        }
+        h.push_str(".</p>\n");
     }
     h.push_str("<h2>Actors</h2>\n<table id=\"actors\"><tr><th>actor</th><th>last seen</th><th>env steps</th><th>episodes</th><th>open leases</th><th>sim worker restarts</th></tr>\n");
     for a in &view.actors {
@@ -256,4 +281,26 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
     }
     h.push_str("</table>\n<p><a href=\"/api/state\">JSON</a> · <a href=\"/metrics\">metrics</a></p></body></html>\n");
     h
+}
+
+/// The recorded episodes of one evaluated policy, as links to `/videos/<name>`.
+fn video_links(videos: &[VideoMeta], policy_version: u64) -> String {
+    videos
+        .iter()
+        .filter(|v| v.policy_version == policy_version)
+        .map(|v| {
+            let outcome = if v.success_at_end {
+                "success"
+            } else {
+                "failure"
+            };
+            video_link(v, &format!("seed {} ({outcome})", v.seed))
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+fn video_link(v: &VideoMeta, text: &str) -> String {
+    // File names are made of ASCII letters, digits, `_`, `-` and `.` only (VideoMeta::file_name).
+    format!("<a href=\"/videos/{}\">{}</a>", v.file_name(), esc(text))
 }

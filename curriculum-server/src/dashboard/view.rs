@@ -1,6 +1,7 @@
 //! The dashboard's view model: everything the page, `/api/state` and `/metrics` show, as plain
 //! serialisable data. Fields added after the first release default when absent, so the JSON of an
 //! older server still reads.
+use rfcl_core::video::VideoMeta;
 use serde::{Deserialize, Serialize};
 
 /// Everything the dashboard shows; `/api/state` serves it as JSON.
@@ -52,6 +53,13 @@ pub struct DashboardView {
     /// serves. Absent from older servers' JSON.
     #[serde(default)]
     pub learner: Option<LearnerPanel>,
+    /// Eval episodes recorded by eval actors (`eval_env.video_every`), by policy version; each
+    /// is served at `/videos/<file name>`.
+    #[serde(default)]
+    pub videos: Vec<VideoMeta>,
+    /// Videos refused (malformed, over the limit, no run directory, a failed write).
+    #[serde(default)]
+    pub videos_refused: u64,
 }
 
 /// The learner beside the curriculum, polled over gRPC (its Health RPC, with the run's token).

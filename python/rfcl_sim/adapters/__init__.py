@@ -8,7 +8,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .base import Adapter, AdapterError, STATE_KINDS
+from .base import Adapter, AdapterError, STATE_KINDS, check_render_size
 
 #: suite name (config `env.suite`) -> module in this package with a ``make(env_id, **kwargs)``.
 SUITES = {
@@ -20,7 +20,9 @@ SUITES = {
 
 def make(suite: str, env_id: str, **kwargs: Any) -> Adapter:
     """A new adapter for ``env_id`` of ``suite``. ``kwargs`` are the run config's env options
-    (``control_mode``, ``max_episode_steps``, ``env_kwargs``, ...), which each suite documents."""
+    (``control_mode``, ``max_episode_steps``, ``env_kwargs``, ``render_size``, ...), which each suite
+    documents. Every suite takes ``render_size`` (``None``, the default, or 16 to 1024): only with
+    it does the adapter render (:meth:`Adapter.render`, square RGB frames of that size)."""
     if suite not in SUITES:
         raise AdapterError(
             f"unknown suite '{suite}': expected one of {sorted(SUITES)} (pointmaze is native Rust)"
@@ -29,4 +31,4 @@ def make(suite: str, env_id: str, **kwargs: Any) -> Adapter:
     return module.make(env_id, **kwargs)
 
 
-__all__ = ["Adapter", "AdapterError", "STATE_KINDS", "SUITES", "make"]
+__all__ = ["Adapter", "AdapterError", "STATE_KINDS", "SUITES", "check_render_size", "make"]

@@ -27,6 +27,12 @@ Resets: ``reset(seed, {})`` seeds the env (door position, pen goal or ball and t
 come from the seed); ``reset(seed, {"initial_state_dict": {...}})`` then sets that state, as
 gymnasium-robotics' own reset does (spec 7.4: how the human demos' initial states are given). The
 dict holds the state fields above as lists of numbers.
+
+**Rendering** (``render_size``, for eval videos): the env is made with ``render_mode="rgb_array"``
+and ``width = height = render_size`` and renders through gymnasium's offscreen MuJoCo renderer
+(``MUJOCO_GL``: set to ``egl`` when unset, see :func:`~rfcl_sim.adapters.fields.headless_gl`), from
+the task's default camera unless ``env_kwargs`` gives ``camera_id``, ``camera_name`` or
+``default_camera_config``.
 """
 from __future__ import annotations
 
@@ -34,8 +40,9 @@ from typing import Any
 
 import numpy as np
 
-from .base import AdapterError
-from .fields import FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs
+from .base import AdapterError, check_render_size
+from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs, headless_gl,
+                     render_env_kwargs)
 
 #: env id -> (task short name, horizon H of spec 8.3, task fields after qpos and qvel).
 TASKS: dict[str, tuple[str, int, tuple[tuple[str, int], ...]]] = {
@@ -74,7 +81,9 @@ def make(env_id: str, **kwargs: Any) -> "AdroitAdapter":
     * ``max_episode_steps``: the horizon H (default: 200, Pen 100, spec 8.3);
     * ``control_mode``: ``None`` or ``"default"`` (the env's joint position controller);
     * ``env_kwargs``: a dict of env constructor arguments, from :data:`ENV_KWARGS`;
-    * ``seed``: seeds the RNG that unseeded resets draw their seeds from.
+    * ``seed``: seeds the RNG that unseeded resets draw their seeds from;
+    * ``render_size``: ``None`` (default: no rendering) or the pixels a side of the square frames of
+      :meth:`~rfcl_sim.adapters.base.Adapter.render` (module docs).
     """
     check_make_kwargs("adroit", env_id, kwargs)
     return AdroitAdapter(env_id, **kwargs)
@@ -92,7 +101,11 @@ class AdroitAdapter(FieldAdapter):
         control_mode: str | None = None,
         env_kwargs: dict[str, Any] | None = None,
         seed: int | None = None,
+        render_size: int | None = None,
     ) -> None:
+        self.render_size = check_render_size("adroit", render_size)
+        if self.render_size is not None:
+            headless_gl()  # before MuJoCo is imported
         import gymnasium as gym
         import gymnasium_robotics
 
@@ -104,6 +117,7 @@ class AdroitAdapter(FieldAdapter):
                 "Adroit has one controller (joint position targets): use null"
             )
         env_kwargs = check_env_kwargs("adroit", self.env_id, env_kwargs, ENV_KWARGS)
+        env_kwargs = render_env_kwargs("adroit", self.env_id, env_kwargs, self.render_size)
         self.horizon = check_horizon("adroit", max_episode_steps, default_horizon)
         gym.register_envs(gymnasium_robotics)
         self._wrapped = gym.make(self.env_id, **env_kwargs)

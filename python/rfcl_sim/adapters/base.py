@@ -13,6 +13,12 @@ Every array crossing the boundary is a flat ``float32`` NumPy vector:
 
 Restoring a demo state is always ``reset(seed, options)`` then ``set_state(state)`` (spec 2.4,
 12.13): geometry and goals the state vector does not carry come from the seed and options.
+
+**Rendering** (eval videos) is opt-in: an adapter made with the ``render_size`` option (square frames
+of that many pixels a side, :func:`check_render_size`) creates its simulator with rendering enabled,
+and :meth:`Adapter.render` returns an RGB frame of the current state. Without the option the
+simulator is made exactly as if rendering did not exist, and ``render()`` raises
+:class:`AdapterError` naming the option.
 """
 from __future__ import annotations
 
@@ -23,6 +29,9 @@ import numpy as np
 
 #: The state-entry kinds of core/src/demo/layout.rs (`StateKind`), as strings.
 STATE_KINDS = ("flat", "actor", "articulation", "field")
+
+#: The smallest and largest ``render_size`` (pixels a side) an adapter accepts.
+RENDER_SIZE_MIN, RENDER_SIZE_MAX = 16, 1024
 
 
 class AdapterError(Exception):
@@ -43,6 +52,8 @@ class Adapter(abc.ABC):
     action_dim: int
     #: The task's horizon H (spec 8.3): the Rust actor truncates episodes after H steps.
     horizon: int
+    #: The ``render_size`` option the adapter was made with (``None``: it does not render).
+    render_size: int | None = None
 
     @abc.abstractmethod
     def state_layout(self) -> list[tuple[str, str, int]]:
@@ -76,6 +87,19 @@ class Adapter(abc.ABC):
     def get_state(self) -> np.ndarray:
         """The current flat state, laid out as :meth:`state_layout` says."""
 
+    def render(self) -> np.ndarray:
+        """An RGB frame of the current state (the state after the last reset, ``set_state`` or
+        step), seen from the suite's video camera: a C-contiguous ``(H, W, 3)`` ``uint8`` array,
+        rows top to bottom, ``H == W == render_size``.
+
+        Only an adapter made with the ``render_size`` option renders; one made without it raises
+        :class:`AdapterError` naming the option. Rendering reads the state and never changes it.
+        This default is for adapters with no renderer at all: it raises :class:`AdapterError`.
+        """
+        raise AdapterError(
+            f"{self.suite}: the {type(self).__name__} of {self.env_id} has no renderer"
+        )
+
     def close(self) -> None:
         """Releases the simulator."""
 
@@ -99,3 +123,43 @@ class Adapter(abc.ABC):
                 f"{self.state_dim} ({self.state_layout()})"
             )
         return s
+
+    def _no_render_size(self) -> AdapterError:
+        """The error of :meth:`render` on an adapter made without ``render_size``."""
+        return AdapterError(
+            f"{self.suite}: render() needs the render_size option (e.g. render_size=256, square "
+            f"frames of that many pixels), and this {self.env_id} adapter was made without it"
+        )
+
+    def _frame(self, image: Any) -> np.ndarray:
+        """``image`` (an array or tensor, with or without a leading batch axis of 1) as the
+        contiguous ``(H, W, 3)`` ``uint8`` frame :meth:`render` returns."""
+        if hasattr(image, "detach"):
+            image = image.detach().cpu().numpy()
+        f = np.asarray(image)
+        if f.ndim == 4 and f.shape[0] == 1:
+            f = f[0]
+        n = self.render_size
+        if f.ndim != 3 or f.shape[2] != 3 or f.dtype != np.uint8 or (
+                n is not None and f.shape[:2] != (n, n)):
+            raise RuntimeError(
+                f"{self.suite}: the renderer of {self.env_id} returned a {f.dtype} array of shape "
+                f"{f.shape}, not an ({n}, {n}, 3) uint8 RGB frame"
+            )
+        return np.ascontiguousarray(f)
+
+
+def check_render_size(suite: str, render_size: Any) -> int | None:
+    """The ``render_size`` option: ``None`` (no renderer, the default) or an integer from
+    :data:`RENDER_SIZE_MIN` to :data:`RENDER_SIZE_MAX`, the width and height of the square frames
+    :meth:`Adapter.render` returns."""
+    if render_size is None:
+        return None
+    # bool is an int subclass, but True is no size.
+    if (isinstance(render_size, bool) or not isinstance(render_size, (int, np.integer))
+            or not RENDER_SIZE_MIN <= render_size <= RENDER_SIZE_MAX):
+        raise AdapterError(
+            f"{suite}: render_size must be null (no rendering) or an integer from "
+            f"{RENDER_SIZE_MIN} to {RENDER_SIZE_MAX} (pixels a side), got {render_size!r}"
+        )
+    return int(render_size)

@@ -7,6 +7,10 @@ name ("adroit: ...", "metaworld: ..."), like the rest of those adapters' message
 """
 from __future__ import annotations
 
+import atexit
+import functools
+import os
+import weakref
 from typing import Any
 
 import numpy as np
@@ -14,7 +18,14 @@ import numpy as np
 from .base import Adapter, AdapterError
 
 #: Keyword arguments the suites' ``make`` accepts (the run config's env section).
-MAKE_KWARGS = ("max_episode_steps", "control_mode", "env_kwargs", "seed")
+MAKE_KWARGS = ("max_episode_steps", "control_mode", "env_kwargs", "seed", "render_size")
+#: The env constructor arguments that ``render_size`` sets, so ``env_kwargs`` must not.
+RENDER_ENV_KWARGS = ("render_mode", "width", "height")
+#: The ``MUJOCO_GL`` an adapter made with ``render_size`` sets when it is unset: EGL renders
+#: offscreen without a display, on a GPU (the vendor's libEGL) or, through Mesa's libEGL
+#: (libegl1, libegl-mesa0), on the CPU (llvmpipe). OSMesa needs libosmesa6, which set-ups rarely
+#: have, and GLFW needs a display.
+DEFAULT_MUJOCO_GL = "egl"
 
 
 def check_make_kwargs(suite: str, env_id: str, kwargs: dict[str, Any]) -> None:
@@ -55,22 +66,87 @@ def check_horizon(suite: str, max_episode_steps: Any, default: int) -> int:
     return int(max_episode_steps)
 
 
+def render_env_kwargs(suite: str, env_id: str, env_kwargs: dict[str, Any],
+                      render_size: int | None) -> dict[str, Any]:
+    """``env_kwargs`` plus what ``render_size`` (already checked) asks of a gymnasium MuJoCo env:
+    ``render_mode="rgb_array"`` and a square ``width`` x ``height``. Without ``render_size``,
+    ``env_kwargs`` unchanged. (The adapter calls :func:`headless_gl` before it imports the suite.)"""
+    if render_size is None:
+        return env_kwargs
+    clash = sorted(set(RENDER_ENV_KWARGS) & set(env_kwargs))
+    if clash:
+        raise AdapterError(
+            f"{suite}: env_kwargs {clash} cannot be given with render_size for {env_id}: "
+            "render_size sets render_mode='rgb_array' and width = height = render_size"
+        )
+    return {**env_kwargs, "render_mode": "rgb_array", "width": render_size,
+            "height": render_size}
+
+
+def headless_gl() -> str:
+    """Sets ``MUJOCO_GL`` when it is unset (to ``PYOPENGL_PLATFORM`` if that names a headless
+    backend, so the two agree, else :data:`DEFAULT_MUJOCO_GL`) and returns it. gymnasium reads it
+    when an env creates its GL context (the first ``render()``), MuJoCo when it is imported."""
+    platform = os.environ.get("PYOPENGL_PLATFORM", "").lower()
+    return os.environ.setdefault(
+        "MUJOCO_GL", platform if platform in ("egl", "osmesa") else DEFAULT_MUJOCO_GL)
+
+
 class FieldAdapter(Adapter):
     """An adapter whose state is the ``field`` entries of ``self._layout``, back to back.
 
-    A subclass's ``__init__`` sets ``_wrapped`` (the env gymnasium made), ``_layout`` and ``_rng``
-    (the RNG that unseeded resets draw their seeds from).
+    A subclass's ``__init__`` sets ``_wrapped`` (the env gymnasium made), ``_env`` (the unwrapped
+    gymnasium ``MujocoEnv``), ``_layout``, ``_rng`` (the RNG that unseeded resets draw their seeds
+    from) and ``render_size``.
     """
 
     _wrapped: Any
+    _env: Any
     _layout: list[tuple[str, str, int]]
     _rng: np.random.Generator
+    #: Whether frames are turned by 180 degrees (a camera defined upside down).
+    _rotate_frames: bool = False
+    #: What closes the GL context at interpreter exit (set by the first render).
+    _close_at_exit: Any = None
 
     def state_layout(self) -> list[tuple[str, str, int]]:
         # A copy, so that a caller cannot change the layout.
         return list(self._layout)
 
+    def render(self) -> np.ndarray:
+        """The env's ``rgb_array`` frame (gymnasium's MuJoCo renderer, offscreen, ``MUJOCO_GL``)."""
+        if self.render_size is None:
+            raise self._no_render_size()
+        renderer = self._env.mujoco_renderer
+        viewer = renderer._viewers.get("rgb_array")
+        if viewer is not None:
+            # Each env has its own GL context and gymnasium only switches between the contexts of
+            # one env: make ours current, as another adapter in this process may have rendered.
+            viewer.make_context_current()
+            frame = self._env.render()
+        else:
+            try:
+                frame = self._env.render()
+            except Exception as e:  # noqa: BLE001 - the first render creates the GL context
+                raise RuntimeError(
+                    f"{self.suite}: MuJoCo could not render {self.env_id} offscreen with "
+                    f"MUJOCO_GL={os.environ.get('MUJOCO_GL')!r} ({type(e).__name__}: {e}). "
+                    "MUJOCO_GL=egl needs libEGL with a GPU driver or Mesa (Debian: libegl1 "
+                    "libegl-mesa0); MUJOCO_GL=osmesa needs libosmesa6"
+                ) from e
+            # An adapter still open at exit frees its GL context before MuJoCo's EGL display is
+            # terminated (atexit runs last-registered first), which would otherwise print
+            # tracebacks from the context's __del__.
+            self._close_at_exit = functools.partial(_close_renderer, weakref.ref(self))
+            atexit.register(self._close_at_exit)
+        if self._rotate_frames:
+            frame = frame[::-1, ::-1]
+        return self._frame(frame)
+
     def close(self) -> None:
+        if self._close_at_exit is not None:
+            atexit.unregister(self._close_at_exit)
+            self._close_at_exit = None
         self._wrapped.close()
 
     # Helpers for the subclasses -------------------------------------------------------------------
@@ -104,3 +180,12 @@ class FieldAdapter(Adapter):
             parts[name] = s[offset:offset + n]
             offset += n
         return parts
+
+
+def _close_renderer(adapter_ref: "weakref.ref[FieldAdapter]") -> None:
+    adapter = adapter_ref()
+    if adapter is not None:
+        try:
+            adapter._env.mujoco_renderer.close()
+        except Exception:  # noqa: BLE001, S110 - best effort at interpreter exit
+            pass

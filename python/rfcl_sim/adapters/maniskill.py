@@ -23,6 +23,15 @@ are hashed into [2**31, 2**32), so they never collide with the small ones.
 
 **Actions** in ``[-1, 1]`` are mapped affinely onto the env's action box (the identity for the
 normalised ``pd_joint_delta_pos`` controller).
+
+**Rendering** (``render_size``, for eval videos): the env is made with ``render_mode="rgb_array"``
+and ``human_render_camera_configs`` setting the task's human render cameras to ``render_size`` x
+``render_size``; ``render()`` is ``render_rgb_array`` of the task's ``render_camera`` (else its
+first human render camera), which shows the goal markers the observations do not. SAPIEN renders
+through Vulkan: on a GPU, or on the CPU with Mesa's lavapipe (``render_backend`` stays ManiSkill's
+default, which falls back to the CPU without CUDA; ``env_kwargs`` may set it). Those cameras exist
+whether or not the adapter renders and carry no physics, so ``render_size`` changes neither the state
+nor the dynamics. Without ``render_size`` the env is made exactly as before.
 """
 from __future__ import annotations
 
@@ -30,14 +39,14 @@ from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError
+from .base import Adapter, AdapterError, check_render_size
 
 SUITE = "maniskill3"
 DEFAULT_CONTROL_MODE = "pd_joint_delta_pos"
 DEFAULT_SIM_BACKEND = "physx_cpu"
 
 #: The keyword arguments :func:`make` understands (the run config's env section, spec 7.1).
-KWARGS = ("control_mode", "max_episode_steps", "env_kwargs", "seed", "sim_backend")
+KWARGS = ("control_mode", "max_episode_steps", "env_kwargs", "seed", "sim_backend", "render_size")
 
 
 def fold_seed(seed: int) -> int:
@@ -73,7 +82,9 @@ class ManiSkillAdapter(Adapter):
         env_kwargs: dict[str, Any] | None = None,
         seed: int | None = None,
         sim_backend: str | None = None,
+        render_size: int | None = None,
     ) -> None:
+        self.render_size = check_render_size(SUITE, render_size)
         import gymnasium as gym
         import mani_skill.envs  # noqa: F401  (registers the tasks)
         from mani_skill.utils.registration import REGISTERED_ENVS
@@ -84,13 +95,25 @@ class ManiSkillAdapter(Adapter):
                 "PegInsertionSide-v1, PlugCharger-v1)"
             )
         extra = dict(env_kwargs or {})
-        fixed = {"obs_mode", "sim_backend", "num_envs", "reward_mode", "control_mode"}
+        fixed = {"obs_mode", "sim_backend", "num_envs", "reward_mode", "control_mode", "render_mode"}
         clash = sorted(fixed & set(extra))
         if clash:
             raise AdapterError(
                 f"env_kwargs must not set {clash}: the adapter fixes obs_mode=state, num_envs=1, "
-                "reward_mode=sparse; control_mode and sim_backend are options of their own"
+                "reward_mode=sparse; control_mode, sim_backend and render_size (which sets "
+                "render_mode) are options of their own"
             )
+        render: dict[str, Any] = {"render_mode": None}
+        if self.render_size is not None:
+            cameras = dict(extra.pop("human_render_camera_configs", None) or {})
+            sized = sorted({"width", "height"} & set(cameras))
+            if sized:
+                raise AdapterError(
+                    f"env_kwargs.human_render_camera_configs must not set {sized} with "
+                    "render_size, which sets the render cameras' width and height"
+                )
+            cameras.update(width=self.render_size, height=self.render_size)
+            render = {"render_mode": "rgb_array", "human_render_camera_configs": cameras}
         self.env_id = env_id
         self.control_mode = control_mode or DEFAULT_CONTROL_MODE
         self.sim_backend = sim_backend or DEFAULT_SIM_BACKEND
@@ -104,7 +127,7 @@ class ManiSkillAdapter(Adapter):
             sim_backend=self.sim_backend,
             num_envs=1,
             reward_mode="sparse",
-            render_mode=None,
+            **render,
             **extra,
         )
         self._env = self._gym_env.unwrapped
@@ -117,6 +140,22 @@ class ManiSkillAdapter(Adapter):
         obs = self.reset(seed, {})
         self.obs_dim = int(obs.shape[0])
         self._layout = self._layout_of(self._env.get_state_dict())
+        self._render_camera: str | None = None
+        if self.render_size is not None:
+            if not self._env.scene.can_render():
+                self._gym_env.close()
+                raise RuntimeError(
+                    f"maniskill3: render_size was given but SAPIEN cannot render on "
+                    f"{self._env.backend.render_device} (render_backend "
+                    f"{self._env.backend.render_backend!r}); on a machine without a GPU it renders "
+                    "through Vulkan with Mesa's lavapipe (Debian: mesa-vulkan-drivers >= 24.3 from "
+                    "bookworm-backports, libvulkan1)"
+                )
+            cameras = list(self._env.scene.human_render_cameras)
+            if not cameras:
+                self._gym_env.close()
+                raise AdapterError(f"{env_id} has no human render camera: it cannot render")
+            self._render_camera = "render_camera" if "render_camera" in cameras else cameras[0]
 
     # The contract -------------------------------------------------------------------------------
 
@@ -166,6 +205,11 @@ class ManiSkillAdapter(Adapter):
                 f"reset is {expected}"
             )
         return np.concatenate([v for _, v in parts]).astype(np.float32, copy=False)
+
+    def render(self) -> np.ndarray:
+        if self.render_size is None:
+            raise self._no_render_size()
+        return self._frame(self._env.render_rgb_array(camera_name=self._render_camera))
 
     def close(self) -> None:
         self._gym_env.close()

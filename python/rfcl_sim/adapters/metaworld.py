@@ -35,6 +35,14 @@ bookkeeping) is rebuilt from it with the vector frozen; then mocap, qpos and qve
 MuJoCo's warm start is cleared. So a restored state steps the same whatever the env did before.
 
 Success is ``info["success"]`` of every step; the env never terminates (rfcl owns time limits).
+
+**Rendering** (``render_size``, for eval videos): the Sawyer env is made with
+``render_mode="rgb_array"`` and ``width = height = render_size`` and renders through gymnasium's
+offscreen MuJoCo renderer (``MUJOCO_GL``: set to ``egl`` when unset, see
+:func:`~rfcl_sim.adapters.fields.headless_gl`). The camera is :data:`RENDER_CAMERA` unless
+``env_kwargs`` names one (``camera_name`` or ``camera_id``). MetaWorld's fixed ``corner*`` cameras
+are defined upside down (for mujoco-py, which read frames bottom row first), so their frames are
+turned by 180 degrees: what ``render()`` returns is upright.
 """
 from __future__ import annotations
 
@@ -42,8 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from .base import AdapterError
-from .fields import FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs
+from .base import AdapterError, check_render_size
+from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs, headless_gl,
+                     render_env_kwargs)
 
 #: Spec 8.3: MetaWorld tasks run for H = 200 steps (train and eval).
 DEFAULT_HORIZON = 200
@@ -57,6 +66,10 @@ CONTROL_MODES = (None, "default")
 FRAME_LEN = 18
 #: The step count MetaWorld refuses to step past; rfcl truncates episodes itself.
 _NO_PATH_LIMIT = 2**62
+#: The camera of ``render()`` when ``env_kwargs`` names none: the table seen from its front corner.
+RENDER_CAMERA = "corner"
+#: MetaWorld's cameras whose up vector points down (xyz_base.xml): frames turned by 180 degrees.
+UPSIDE_DOWN_CAMERAS = ("corner", "corner2", "corner3", "corner4")
 
 
 def task_names() -> list[str]:
@@ -74,7 +87,9 @@ def make(env_id: str, **kwargs: Any) -> "MetaWorldAdapter":
     * ``max_episode_steps``: the horizon H (default 200, spec 8.3);
     * ``control_mode``: ``None`` or ``"default"`` (MetaWorld has one controller);
     * ``env_kwargs``: a dict of Sawyer env arguments, one of :data:`ENV_KWARGS`;
-    * ``seed``: seeds the RNG that unseeded resets draw their seeds from.
+    * ``seed``: seeds the RNG that unseeded resets draw their seeds from;
+    * ``render_size``: ``None`` (default: no rendering) or the pixels a side of the square frames of
+      :meth:`~rfcl_sim.adapters.base.Adapter.render` (module docs).
     """
     check_make_kwargs("metaworld", env_id, kwargs)
     return MetaWorldAdapter(env_id, **kwargs)
@@ -92,7 +107,11 @@ class MetaWorldAdapter(FieldAdapter):
         control_mode: str | None = None,
         env_kwargs: dict[str, Any] | None = None,
         seed: int | None = None,
+        render_size: int | None = None,
     ) -> None:
+        self.render_size = check_render_size("metaworld", render_size)
+        if self.render_size is not None:
+            headless_gl()  # before MuJoCo is imported
         import gymnasium as gym
         import metaworld  # noqa: F401  (registers the Meta-World/* env ids)
 
@@ -107,6 +126,9 @@ class MetaWorldAdapter(FieldAdapter):
                 "MetaWorld has one controller (end-effector deltas + gripper): use null"
             )
         env_kwargs = check_env_kwargs("metaworld", env_id, env_kwargs, ENV_KWARGS)
+        env_kwargs = render_env_kwargs("metaworld", env_id, env_kwargs, self.render_size)
+        if self.render_size is not None and not {"camera_name", "camera_id"} & set(env_kwargs):
+            env_kwargs["camera_name"] = RENDER_CAMERA
         self.env_id = env_id
         self.horizon = check_horizon("metaworld", max_episode_steps, DEFAULT_HORIZON)
         # MT1's seed only fixes its 50 goals, which resets replace (module docs); a constant keeps
@@ -118,6 +140,12 @@ class MetaWorldAdapter(FieldAdapter):
         env.set_task(env_task(self._wrapped))
         env.max_path_length = _NO_PATH_LIMIT
         self._env = env
+        if self.render_size is not None:
+            import mujoco
+
+            camera = mujoco.mj_id2name(env.model, mujoco.mjtObj.mjOBJ_CAMERA,
+                                       env.mujoco_renderer.camera_id)
+            self._rotate_frames = camera in UPSIDE_DOWN_CAMERAS
         self._rng = np.random.default_rng(seed)
         self.obs_dim = int(env.sawyer_observation_space.shape[0])
         self.action_dim = int(env.action_space.shape[0])

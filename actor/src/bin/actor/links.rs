@@ -8,9 +8,11 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, bail, Context, Result};
 use rfcl_actor::retry::Backoff;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, ResetLease};
+use rfcl_core::video::EvalVideo;
 use rfcl_proto::auth::{AuthChannel, ClientAuth};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
+use rfcl_proto::v1::eval_videos_client::EvalVideosClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
 use tokio::sync::{mpsc, watch};
 use tonic::transport::Endpoint;
@@ -118,6 +120,7 @@ where
 /// The curriculum server as an actor uses it.
 pub struct Curriculum {
     client: CurriculumClient<AuthChannel>,
+    videos: EvalVideosClient<AuthChannel>,
     peer: String,
     retry_for: Duration,
 }
@@ -133,9 +136,11 @@ pub enum Reported {
 
 impl Curriculum {
     pub fn new(addr: &str, auth: &ClientAuth, retry_for: Duration) -> Result<Self> {
+        let channel = channel(addr, auth, true)?;
         Ok(Self {
-            client: CurriculumClient::new(channel(addr, auth, true)?)
+            client: CurriculumClient::new(channel.clone())
                 .max_decoding_message_size(CURRICULUM_REPLY_BYTES),
+            videos: EvalVideosClient::new(channel),
             peer: format!("curriculum server at {}", normalize_addr(addr)),
             retry_for,
         })
@@ -240,6 +245,25 @@ impl Curriculum {
 
     /// Reports an episode exactly once: a retried report that the server already applied is
     /// acknowledged without change.
+    /// Sends a recorded eval episode; the name the dashboard serves it under.
+    pub async fn put_video(&self, video: EvalVideo) -> Result<String> {
+        let wire = v1::EvalVideo::from(video);
+        let result = retrying(&self.peer, "EvalVideos.Put", self.retry_for, || {
+            let mut c = self.videos.clone();
+            let wire = wire.clone();
+            async move { c.put(wire).await }
+        })
+        .await?;
+        match result {
+            Ok(ack) => Ok(ack.into_inner().name),
+            Err(status) => bail!(
+                "the {} refused the eval video: {}",
+                self.peer,
+                status.message()
+            ),
+        }
+    }
+
     pub async fn report(&self, report: &EpisodeReport) -> Result<Reported> {
         let wire = v1::EpisodeReport::from(report.clone());
         let result = retrying(&self.peer, "Report", self.retry_for, || {

@@ -12,9 +12,11 @@ use rfcl_actor::net::{policy_from_weights, published_policy_bytes};
 use rfcl_actor::policy::PolicyHandle;
 use rfcl_actor::rollout::{derive_seed, Rollout, RolloutSettings, StepOutput};
 use rfcl_actor::suite::make_env;
+use rfcl_actor::video::{encode_gif, Recorder};
 use rfcl_core::config::RunConfig;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport};
 use rfcl_core::transition::{RecordLayout, Transition};
+use rfcl_core::video::{EvalVideo, VideoMeta};
 use rfcl_proto::auth::ClientAuth;
 use rfcl_proto::v1;
 use tokio::sync::{mpsc, watch};
@@ -105,6 +107,9 @@ pub async fn run(
         curriculum: Curriculum::new(&curriculum_addr, &opts.auth, opts.retry_for)?,
         cfg,
     };
+    // An eval actor that records videos renders in its first env only.
+    let video_size =
+        (opts.eval && run.cfg.eval_env.video_every > 0).then_some(run.cfg.eval_env.video_size);
     let envs = (0..opts.envs)
         .map(|i| {
             make_env(
@@ -112,6 +117,7 @@ pub async fn run(
                 derive_seed(run.run_seed, opts.id, i),
                 run.obs_dim,
                 run.action_dim,
+                video_size.filter(|_| i == 0),
             )
         })
         .collect::<Result<Vec<_>, _>>()?;
@@ -502,6 +508,7 @@ async fn eval_loop(
     let actor_id = rollout.settings().actor_id;
     let mut out = StepOutput::default();
     let mut current: Option<PolicyHandle> = None;
+    let mut videos = EvalVideos::new(run.cfg.eval_env.video_every);
     loop {
         if policy_rx.changed().await.is_err() {
             bail!("the policy watch ended");
@@ -526,6 +533,7 @@ async fn eval_loop(
         };
         let started_at = Instant::now();
         let (mut started, mut finished, mut successes, mut refused) = (0u64, 0u64, 0u64, 0u64);
+        videos.evaluation_begins();
         while finished < episodes {
             for env in rollout.idle_envs() {
                 if started == episodes {
@@ -539,12 +547,16 @@ async fn eval_loop(
                 let Some(lease) = run.curriculum.acquire(req).await? else {
                     return Ok(Stopped::CurriculumFinished);
                 };
+                let seed = lease.reset.seed;
                 rollout.begin(env, lease)?;
+                videos.begun(&mut rollout, env, seed);
                 started += 1;
             }
             out.clear();
             rollout.step(Some(&mut *policy), &mut out)?;
+            videos.stepped(&mut rollout, &out);
             for (env, report) in out.finished.drain(..) {
+                videos.finished(env, &report, &run.curriculum).await;
                 finished += 1;
                 successes += u64::from(report.success_at_end);
                 let (reported, lease) = if started < episodes {
@@ -562,7 +574,9 @@ async fn eval_loop(
                     tracing::warn!(lease = report.lease_id, "eval report refused: {why}");
                 }
                 if let Some(lease) = lease {
+                    let seed = lease.reset.seed;
                     rollout.begin(env, lease)?;
+                    videos.begun(&mut rollout, env, seed);
                     started += 1;
                 }
             }
@@ -575,7 +589,104 @@ async fn eval_loop(
             success_at_end = successes as f64 / episodes as f64,
             refused,
             seconds = started_at.elapsed().as_secs_f64(),
+            videos_sent = videos.sent,
+            videos_failed = videos.failed,
             "evaluation done"
         );
+    }
+}
+
+/// Records the first episode of env 0 in every `eval_env.video_every`-th evaluation and sends it
+/// to the curriculum server. A video that cannot be made or sent is logged and counted, never a
+/// reason to stop evaluating.
+struct EvalVideos {
+    every: u32,
+    evaluations: u64,
+    /// Whether this evaluation still wants its video.
+    wanted: bool,
+    recording: Option<(Recorder, u64)>,
+    sent: u64,
+    failed: u64,
+}
+
+impl EvalVideos {
+    fn new(every: u32) -> Self {
+        EvalVideos {
+            every,
+            evaluations: 0,
+            wanted: false,
+            recording: None,
+            sent: 0,
+            failed: 0,
+        }
+    }
+
+    fn evaluation_begins(&mut self) {
+        self.wanted = self.every > 0 && self.evaluations.is_multiple_of(u64::from(self.every));
+        self.evaluations += 1;
+        self.recording = None;
+    }
+
+    fn fail(&mut self, what: &str, e: impl std::fmt::Display) {
+        self.failed += 1;
+        self.recording = None;
+        tracing::warn!(failed = self.failed, "eval video: {what}: {e}");
+    }
+
+    fn begun(&mut self, rollout: &mut Rollout, env: usize, seed: Option<u64>) {
+        if env != 0 || !self.wanted {
+            return;
+        }
+        self.wanted = false;
+        match rollout.render(0) {
+            Ok(first) => self.recording = Some((Recorder::new(first), seed.unwrap_or(0))),
+            Err(e) => self.fail("rendering the reset state", e),
+        }
+    }
+
+    fn stepped(&mut self, rollout: &mut Rollout, out: &StepOutput) {
+        let Some((rec, _)) = self.recording.as_mut() else {
+            return;
+        };
+        let last = out.finished.iter().any(|(env, _)| *env == 0);
+        if rec.step(last) {
+            match rollout.render(0) {
+                Ok(frame) => rec.push(frame),
+                Err(e) => self.fail("rendering a step", e),
+            }
+        }
+    }
+
+    async fn finished(&mut self, env: usize, report: &EpisodeReport, curriculum: &Curriculum) {
+        if env != 0 {
+            return;
+        }
+        let Some((rec, seed)) = self.recording.take() else {
+            return;
+        };
+        let gif = match tokio::task::spawn_blocking(move || encode_gif(rec.frames())).await {
+            Ok(Ok(gif)) => gif,
+            Ok(Err(e)) => return self.fail("encoding", e),
+            Err(e) => return self.fail("encoding", e),
+        };
+        let video = EvalVideo {
+            meta: VideoMeta {
+                policy_version: report.policy_version,
+                env_steps: report.policy_env_steps,
+                seed,
+                success_at_end: report.success_at_end,
+                episode_return: report.episode_return,
+                actor_id: report.actor_id,
+            },
+            gif,
+        };
+        let bytes = video.gif.len();
+        match curriculum.put_video(video).await {
+            Ok(name) => {
+                self.sent += 1;
+                tracing::info!(bytes, "eval video sent: {name}");
+            }
+            Err(e) => self.fail("sending", format!("{e:#}")),
+        }
     }
 }

@@ -1,0 +1,26 @@
+//! The learner's last word: its counters when it stops cleanly, written to
+//! `RUN_DIR/learner_final.json` after the training thread has ended and the ingest is closed.
+//! Every figure is from that one moment, so the transport counts cover the env steps. A learner
+//! that ends the run by itself (the curriculum server's stop rule) can no longer answer Health;
+//! this is how `rfcl train`'s summary gets its final counts.
+use serde::{Deserialize, Serialize};
+
+/// The file in the learner's run directory.
+pub const FINAL_COUNTERS_FILE: &str = "learner_final.json";
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FinalCounters {
+    /// The learner process that wrote it (a file from an earlier process is not this one's).
+    pub pid: u32,
+    /// Env steps received in all (a resumed learner counts on from its checkpoint), critic
+    /// updates and the last policy version.
+    pub env_steps: u64,
+    pub updates: u64,
+    pub policy_version: u64,
+    /// Transition records taken in per transport by this process, records missing between an
+    /// actor's shared-memory frames, and batches refused as malformed.
+    pub shm_records: u64,
+    pub grpc_records: u64,
+    pub shm_lost_records: u64,
+    pub refused_batches: u64,
+}
