@@ -57,6 +57,17 @@ ok = p.get("address") == "http://learner:50052" and p.get("error") is None \
     and p.get("seconds_since_answer") is not None and w.get("updates_per_s", 0) > 0
 sys.exit(0 if ok else 1)' 2>/dev/null
 }
+# The eval-actor container records its first evaluation's first episode and sends it to the
+# curriculum server over gRPC; the dashboard lists it and serves the GIF from the runs volume.
+eval_video() {
+  local url
+  url=$(curl -fsS "http://127.0.0.1:$RFCL_DASHBOARD_PORT/api/state" 2>/dev/null | python3 -c '
+import json, sys
+v = json.load(sys.stdin).get("videos") or []
+sys.exit(1) if not v else print(v[0]["url"])' 2>/dev/null) || return 1
+  curl -fsS -o "$TMP/eval_video.gif" "http://127.0.0.1:$RFCL_DASHBOARD_PORT$url" 2>/dev/null || return 1
+  [ "$(head -c 6 "$TMP/eval_video.gif")" = GIF89a ]
+}
 
 step "docker, images, token"
 deploy/setup-docker.sh | sed 's/^/    /'
@@ -80,6 +91,7 @@ wait_for 60 "dashboard answers on 127.0.0.1:$RFCL_DASHBOARD_PORT" \
   curl -fsS -o /dev/null "http://127.0.0.1:$RFCL_DASHBOARD_PORT/"
 wait_for 120 "env steps growing on the dashboard (> 2000)" steps_above 2000
 wait_for 60 "the dashboard's learner panel polls http://learner:50052 (updates/s > 0)" learner_panel
+wait_for 180 "an eval video from the eval-actor container, served by the dashboard" eval_video
 
 step "a wrong token is refused"
 out=$(docker run --rm --network "${P}_default" -e RFCL_TOKEN=not-the-run-token-0123456789 -e NO_COLOR=1 \

@@ -277,6 +277,44 @@ mod tests {
         );
     }
 
+    /// A video from a simulator's own renderer: ManiSkill3 PickCube-v1 (horizon 50) through its
+    /// Python worker, at `eval_env.video_size`, with an untrained policy.
+    #[test]
+    fn eval_writes_a_maniskill3_video_from_its_renderer() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(
+            dir.path().join("config.yml"),
+            format!(
+                "base_config: {}/configs/maniskill3/pick_cube.yml\nname: eval_video_ms3\n\
+                 eval_env:\n  video_size: 64\nsac:\n  critic_ensemble: 2\n  target_pool: 2\n\
+                 network:\n  actor_features: [16, 16]\n  critic_features: [16, 16]\n",
+                env!("CARGO_MANIFEST_DIR")
+            ),
+        )
+        .unwrap();
+        let cfg = rfcl_core::config::resolve_file(&dir.path().join("config.yml"), &[]).unwrap();
+        let (obs, act) = rfcl_actor::suite::native_dims(&cfg.env).unwrap();
+        let net = PolicyNet::init(PolicyShape::from_config(&cfg, obs, act), 1).unwrap();
+        std::fs::write(
+            dir.path().join("policy.safetensors"),
+            net.to_safetensors().unwrap(),
+        )
+        .unwrap();
+        let videos = dir.path().join("videos");
+        let report = eval(dir.path(), 1, Some(&videos)).unwrap();
+        assert_eq!(report.videos.len(), 1);
+        let mut decoder = gif::DecodeOptions::new()
+            .read_info(std::fs::File::open(&report.videos[0]).unwrap())
+            .unwrap();
+        assert_eq!((decoder.width(), decoder.height()), (64, 64));
+        let mut frames = 0;
+        while decoder.read_next_frame().unwrap().is_some() {
+            frames += 1;
+        }
+        // The reset state, steps 3, 6, ..., 48, and the last, 50.
+        assert_eq!(frames, 1 + 16 + 1);
+    }
+
     /// `--video`: one GIF per episode, named by seed, outcome and return, with a frame every
     /// `STEPS_PER_FRAME` steps of the 300-step episode and the last.
     #[test]

@@ -95,7 +95,7 @@ impl Shared {
         view.oversized_requests = self.oversized_requests.load(Ordering::Relaxed);
         view.learner = self.learner.panel(now);
         let videos = self.videos.listing();
-        view.videos = videos.videos;
+        view.videos = videos.videos.into_iter().map(Into::into).collect();
         view.videos_refused = videos.refused;
         for bar in &mut view.demos {
             if let Some(&id) = self.demos.episode_ids.get(bar.demo as usize) {

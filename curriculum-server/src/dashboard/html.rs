@@ -5,8 +5,7 @@ use super::charts::{
     demo_bars_svg, demo_color, demo_frontiers_svg, level_probabilities_svg, maze_heatmap_svg,
     progress_svg, PROGRESS_LEGEND,
 };
-use super::view::{DashboardView, LearnerPanel, LevelRow};
-use rfcl_core::video::VideoMeta;
+use super::view::{DashboardView, LearnerPanel, LevelRow, VideoLink};
 
 fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
@@ -258,7 +257,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
             let _ = write!(
                 h,
                 "; the latest: {}",
-                video_link(last, &format!("policy v{}", last.policy_version))
+                video_link(last, &format!("policy v{}", last.meta.policy_version))
             );
         }
         if view.videos_refused > 0 {
@@ -284,23 +283,22 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 }
 
 /// The recorded episodes of one evaluated policy, as links to `/videos/<name>`.
-fn video_links(videos: &[VideoMeta], policy_version: u64) -> String {
+fn video_links(videos: &[VideoLink], policy_version: u64) -> String {
     videos
         .iter()
-        .filter(|v| v.policy_version == policy_version)
+        .filter(|v| v.meta.policy_version == policy_version)
         .map(|v| {
-            let outcome = if v.success_at_end {
+            let outcome = if v.meta.success_at_end {
                 "success"
             } else {
                 "failure"
             };
-            video_link(v, &format!("seed {} ({outcome})", v.seed))
+            video_link(v, &format!("seed {} ({outcome})", v.meta.seed))
         })
         .collect::<Vec<_>>()
         .join(" ")
 }
 
-fn video_link(v: &VideoMeta, text: &str) -> String {
-    // File names are made of ASCII letters, digits, `_`, `-` and `.` only (VideoMeta::file_name).
-    format!("<a href=\"/videos/{}\">{}</a>", v.file_name(), esc(text))
+fn video_link(v: &VideoLink, text: &str) -> String {
+    format!("<a href=\"{}\">{}</a>", esc(&v.url), esc(text))
 }

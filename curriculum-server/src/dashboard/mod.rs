@@ -21,6 +21,7 @@ pub use metrics::metrics_text;
 pub use view::{
     ActorRow, DashboardView, DemoBar, DemoDifficulty, EvalPoint, LearnerPanel, LearnerWindowView,
     LevelRow, MazeCell, MazeSnapshot, MazeView, ProgressPoint, RefusedReports, TimeShares,
+    VideoLink,
 };
 
 #[cfg(test)]

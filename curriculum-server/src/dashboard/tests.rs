@@ -292,3 +292,43 @@ fn the_learner_panel_shows_rates_losses_and_where_the_time_goes() {
     assert!(html.contains("<p class=err>Health at http://learner:50052: no answer within 2 s</p>"));
     assert!(html.contains("updates/s <b>31.5</b>"));
 }
+
+#[test]
+fn the_eval_table_links_each_policys_recorded_episodes() {
+    let mut v = view();
+    let eval = |policy_version, env_steps| EvalPoint {
+        policy_version,
+        env_steps,
+        episodes: 20,
+        success_at_end: 0.5,
+        success_once: 0.6,
+        mean_return: 3.0,
+    };
+    v.evals = vec![eval(4, 20_000), eval(9, 40_000)];
+    let html = render_html(&v, 2);
+    assert!(!html.contains("eval episode(s) recorded"), "{html}");
+
+    let meta = rfcl_core::video::VideoMeta {
+        policy_version: 9,
+        env_steps: 40_000,
+        seed: 1_000_021,
+        success_at_end: true,
+        episode_return: 12.0,
+        actor_id: 2,
+    };
+    v.videos = vec![VideoLink::from(meta)];
+    v.videos_refused = 1;
+    let html = render_html(&v, 2);
+    let link = "<a href=\"/videos/v000009_steps40000_seed1000021_success_return12.0_actor2.gif\">";
+    assert!(
+        html.contains(&format!("{link}seed 1000021 (success)</a></td></tr>")),
+        "{html}"
+    );
+    // Only policy 9's row has one; the line under the table links the latest and counts refusals.
+    assert_eq!(html.matches(link).count(), 2, "{html}");
+    assert!(
+        html.contains("1 eval episode(s) recorded; the latest: "),
+        "{html}"
+    );
+    assert!(html.contains("<span class=err>1 refused</span>"), "{html}");
+}

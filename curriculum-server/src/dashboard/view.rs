@@ -53,13 +53,30 @@ pub struct DashboardView {
     /// serves. Absent from older servers' JSON.
     #[serde(default)]
     pub learner: Option<LearnerPanel>,
-    /// Eval episodes recorded by eval actors (`eval_env.video_every`), by policy version; each
-    /// is served at `/videos/<file name>`.
+    /// Eval episodes recorded by eval actors (`eval_env.video_every`), by policy version.
     #[serde(default)]
-    pub videos: Vec<VideoMeta>,
+    pub videos: Vec<VideoLink>,
     /// Videos refused (malformed, over the limit, no run directory, a failed write).
     #[serde(default)]
     pub videos_refused: u64,
+}
+
+/// An eval video the server keeps, and where the dashboard serves it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VideoLink {
+    #[serde(flatten)]
+    pub meta: VideoMeta,
+    /// `/videos/<file name>` on the dashboard.
+    pub url: String,
+}
+
+impl From<VideoMeta> for VideoLink {
+    fn from(meta: VideoMeta) -> Self {
+        VideoLink {
+            url: format!("/videos/{}", meta.file_name()),
+            meta,
+        }
+    }
 }
 
 /// The learner beside the curriculum, polled over gRPC (its Health RPC, with the run's token).
