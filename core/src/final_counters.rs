@@ -8,10 +8,10 @@ use serde::{Deserialize, Serialize};
 /// The file in the learner's run directory.
 pub const FINAL_COUNTERS_FILE: &str = "learner_final.json";
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct FinalCounters {
-    /// The learner process that wrote it (a file from an earlier process is not this one's).
-    pub pid: u32,
+/// The learner's counters at one moment: what its Health reply carries, and what it writes when
+/// it stops.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LearnerCounts {
     /// Env steps received in all (a resumed learner counts on from its checkpoint), critic
     /// updates and the last policy version.
     pub env_steps: u64,
@@ -23,4 +23,37 @@ pub struct FinalCounters {
     pub grpc_records: u64,
     pub shm_lost_records: u64,
     pub refused_batches: u64,
+}
+
+/// The file's content: the counts, and the learner process that wrote them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FinalCounters {
+    /// A file from an earlier process is not this one's.
+    pub pid: u32,
+    #[serde(flatten)]
+    pub counts: LearnerCounts,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The counts sit beside the pid in the file, one flat JSON object.
+    #[test]
+    fn the_file_is_one_flat_object() {
+        let last = FinalCounters {
+            pid: 7,
+            counts: LearnerCounts {
+                env_steps: 100,
+                shm_records: 100,
+                ..LearnerCounts::default()
+            },
+        };
+        let json = serde_json::to_value(last).unwrap();
+        assert_eq!(
+            (json["pid"].as_u64(), json["env_steps"].as_u64()),
+            (Some(7), Some(100))
+        );
+        assert_eq!(serde_json::from_value::<FinalCounters>(json).unwrap(), last);
+    }
 }

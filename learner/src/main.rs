@@ -23,7 +23,7 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use rfcl_core::config::{Device, RunConfig, StagePlan};
 use rfcl_core::demo::DemoSet;
-use rfcl_core::final_counters::{FinalCounters, FINAL_COUNTERS_FILE};
+use rfcl_core::final_counters::{FinalCounters, LearnerCounts, FINAL_COUNTERS_FILE};
 use rfcl_learner::checkpoint::{self, Manifest};
 use rfcl_learner::service::{self, LearnerService, RunDescription};
 use rfcl_learner::stages;
@@ -380,13 +380,15 @@ async fn run(args: Args) -> Result<()> {
         let s = status.snapshot();
         let last = FinalCounters {
             pid: std::process::id(),
-            env_steps: s.env_steps,
-            updates: s.critic_updates,
-            policy_version: s.policy_version,
-            shm_records: totals.shm_records,
-            grpc_records: totals.grpc_records,
-            shm_lost_records: totals.shm_lost_records,
-            refused_batches: totals.refused_batches,
+            counts: LearnerCounts {
+                env_steps: s.env_steps,
+                updates: s.critic_updates,
+                policy_version: s.policy_version,
+                shm_records: totals.shm_records,
+                grpc_records: totals.grpc_records,
+                shm_lost_records: totals.shm_lost_records,
+                refused_batches: totals.refused_batches,
+            },
         };
         let path = run_dir.join(FINAL_COUNTERS_FILE);
         let json = serde_json::to_vec_pretty(&last).expect("counters serialize");

@@ -33,7 +33,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
-use rfcl_core::final_counters::{FinalCounters, FINAL_COUNTERS_FILE};
+use rfcl_core::final_counters::{FinalCounters, LearnerCounts, FINAL_COUNTERS_FILE};
 use rfcl_curriculum::dashboard::DashboardView;
 use rfcl_proto::auth::{self, AuthChannel, ClientAuth, Token};
 use rfcl_proto::v1;
@@ -749,8 +749,8 @@ impl Session {
     /// Health), the curriculum's episode reports (its last state).
     fn rollback_counters(&self) -> [u64; 3] {
         [
-            self.counters.env_steps,
-            self.counters.updates,
+            self.counters.counts.env_steps,
+            self.counters.counts.updates,
             self.last_view.as_ref().map_or(0, |v| v.episodes),
         ]
     }
@@ -835,13 +835,15 @@ impl Session {
         self.last_health = Some((now, h.updates));
         self.counters = LearnerCounters {
             source: CountersSource::LastPoll,
-            env_steps: h.env_steps,
-            updates: h.updates,
-            policy_version: h.policy_version,
-            shm_records: h.shm_records,
-            grpc_records: h.grpc_records,
-            shm_lost_records: h.shm_lost_records,
-            refused_batches: h.refused_batches,
+            counts: LearnerCounts {
+                env_steps: h.env_steps,
+                updates: h.updates,
+                policy_version: h.policy_version,
+                shm_records: h.shm_records,
+                grpc_records: h.grpc_records,
+                shm_lost_records: h.shm_lost_records,
+                refused_batches: h.refused_batches,
+            },
         };
         true
     }
@@ -900,7 +902,7 @@ impl Session {
             format!("{:.0}%", 100.0 * e.success_at_end)
         });
         self.bar.update(
-            self.counters.env_steps,
+            self.counters.counts.env_steps,
             format!(
                 "stage {stage} | eval {eval} | {:.1} upd/s",
                 self.updates_per_s
@@ -1000,13 +1002,7 @@ fn read_final_counters(run_dir: &Path, pid: u32) -> Option<LearnerCounters> {
         .ok()?;
     (last.pid == pid).then_some(LearnerCounters {
         source: CountersSource::Final,
-        env_steps: last.env_steps,
-        updates: last.updates,
-        policy_version: last.policy_version,
-        shm_records: last.shm_records,
-        grpc_records: last.grpc_records,
-        shm_lost_records: last.shm_lost_records,
-        refused_batches: last.refused_batches,
+        counts: last.counts,
     })
 }
 

@@ -4,6 +4,7 @@
 //! curriculum server's state and the wall clock.
 use std::collections::BTreeMap;
 
+use rfcl_core::final_counters::LearnerCounts;
 use rfcl_curriculum::dashboard::{DashboardView, DemoBar, EvalPoint, RefusedReports};
 use serde::{Deserialize, Serialize};
 
@@ -418,14 +419,7 @@ pub enum CountersSource {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct LearnerCounters {
     pub source: CountersSource,
-    pub env_steps: u64,
-    pub updates: u64,
-    pub policy_version: u64,
-    /// Records taken in per transport.
-    pub shm_records: u64,
-    pub grpc_records: u64,
-    pub shm_lost_records: u64,
-    pub refused_batches: u64,
+    pub counts: LearnerCounts,
 }
 
 /// What a run's summary needs from its config.
@@ -453,13 +447,13 @@ pub fn summarize(
     // each eval carries the learner's count when it published the evaluated policy: the learner
     // received at least that many. Only then are env steps raised past the reply's own, and the
     // summary says so (`learner_counters: last_poll`); a final reply is taken as it is.
-    let mut learner = learner;
+    let mut counts = learner.counts;
     if let (CountersSource::LastPoll, Some(last)) = (learner.source, evals.last()) {
-        learner.env_steps = learner.env_steps.max(last.env_steps);
-        learner.policy_version = learner.policy_version.max(last.policy_version);
+        counts.env_steps = counts.env_steps.max(last.env_steps);
+        counts.policy_version = counts.policy_version.max(last.policy_version);
     }
     let env_steps_accounting = StepAccounting::new(
-        learner.env_steps,
+        counts.env_steps,
         view.env_steps,
         UncountedSteps {
             train_envs: shape.train_envs,
@@ -467,8 +461,8 @@ pub fn summarize(
             batch_records: shape.batch_records,
             expired_leases: view.expired_leases,
             refused_reports: view.refused_reports.total(),
-            lost_records: learner.shm_lost_records,
-            refused_batches: learner.refused_batches,
+            lost_records: counts.shm_lost_records,
+            refused_batches: counts.refused_batches,
             restarts: &progress.restarts,
         },
     );
@@ -489,10 +483,10 @@ pub fn summarize(
         env_id: view.env_id.clone(),
         ending,
         error: None,
-        env_steps: learner.env_steps,
+        env_steps: counts.env_steps,
         learner_counters: learner.source,
-        updates: learner.updates,
-        policy_version: learner.policy_version,
+        updates: counts.updates,
+        policy_version: counts.policy_version,
         wall_s,
         sessions: progress.sessions,
         stage_1_env_steps: view.stage_1_env_steps,
@@ -510,10 +504,10 @@ pub fn summarize(
         actor_respawns: progress.actor_respawns,
         service_restarts: progress.restarts.clone(),
         sim_worker_restarts: view.sim_worker_restarts,
-        transitions_shm: learner.shm_records,
-        transitions_grpc: learner.grpc_records,
-        transitions_lost_shm: learner.shm_lost_records,
-        refused_batches: learner.refused_batches,
+        transitions_shm: counts.shm_records,
+        transitions_grpc: counts.grpc_records,
+        transitions_lost_shm: counts.shm_lost_records,
+        refused_batches: counts.refused_batches,
         env_steps_accounting,
         evals: evals.evals(),
         demos: view.demos.clone(),
@@ -726,13 +720,15 @@ mod tests {
         };
         let learner = LearnerCounters {
             source: CountersSource::Final,
-            env_steps: 3100,
-            updates: 1550,
-            policy_version: 40,
-            shm_records: 3000,
-            grpc_records: 100,
-            shm_lost_records: 7,
-            refused_batches: 1,
+            counts: LearnerCounts {
+                env_steps: 3100,
+                updates: 1550,
+                policy_version: 40,
+                shm_records: 3000,
+                grpc_records: 100,
+                shm_lost_records: 7,
+                refused_batches: 1,
+            },
         };
         let shape = RunShape {
             train_envs: 2,
@@ -764,9 +760,12 @@ mod tests {
         assert_eq!(json["learner_counters"], "final");
         // A final reply is taken as it is: its transport counts and env steps are one moment's.
         let final_reply = LearnerCounters {
-            env_steps: 2950,
-            shm_records: 2900,
-            grpc_records: 50,
+            counts: LearnerCounts {
+                env_steps: 2950,
+                shm_records: 2900,
+                grpc_records: 50,
+                ..learner.counts
+            },
             ..learner
         };
         let s = summarize(
@@ -785,8 +784,10 @@ mod tests {
         // steps, and the summary says its transport counts may trail them.
         let stale = LearnerCounters {
             source: CountersSource::LastPoll,
-            env_steps: 2950,
-            ..learner
+            counts: LearnerCounts {
+                env_steps: 2950,
+                ..learner.counts
+            },
         };
         let s = summarize(
             &view,
