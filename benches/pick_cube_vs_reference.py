@@ -1,0 +1,141 @@
+"""The full PickCube-v1 preset run beside the official JAX implementation's run on the same kind of
+machine (2 cores, CPU only, 5 motion-planned demos, seed 1, its ManiSkill3 CPU config).
+
+    .venv/bin/python benches/pick_cube_vs_reference.py RUN_DIR [--state STATE.json] [--svg OUT.svg]
+
+RUN_DIR is an `rfcl train` run of configs/maniskill3/pick_cube.yml with `sac.eval_freq=20000`
+(its summary.json and metrics.csv); STATE.json is the run's dashboard /api/state saved near its end,
+whose progress history gives the first train success (the summary keeps only the last rate).
+Prints the Markdown tables of benches/RESULTS.md and draws both eval curves on one SVG.
+"""
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+# The reference run's figures (benches/RESULTS.md, "PickCube-v1 at the paper's settings"): eval
+# success at every 20,000 env steps where it was recorded (at 260k it was between 0.60 and 0.70),
+# its milestones and its rate.
+REFERENCE_EVALS = {k * 20_000: 0.0 for k in range(1, 8)} | {
+    160_000: 0.10,
+    200_000: 0.05,
+    220_000: 0.20,
+    240_000: 0.50,
+    260_000: 0.65,
+}
+REFERENCE_260K_RANGE = (0.60, 0.70)
+REFERENCE = {
+    "env steps/s (with updates)": "36.5",
+    "first train success": "about 50,000",
+    "stage 1 ends": "168,416 (77 min)",
+    "eval success ≥ 50 %": "240,000 (110 min)",
+    "eval success ≥ 90 %": "not reached by 260,000",
+}
+
+
+def first_train_success(state):
+    """Env steps of the first progress sample with a train success, from a saved /api/state."""
+    if state is None:
+        return None
+    return next((p["env_steps"] for p in state["history"] if p["train_success_rate"] > 0), None)
+
+
+def wall_at(metrics, env_steps):
+    """Wall seconds (all sessions) when the learner had `env_steps`, from metrics.csv."""
+    for row in metrics:
+        if int(row["env_steps"]) >= env_steps:
+            return float(row["time/total"])
+    return None
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("run_dir", type=Path)
+    parser.add_argument("--state", type=Path)
+    parser.add_argument("--svg", type=Path, default=Path("benches/pick_cube_vs_reference.svg"))
+    args = parser.parse_args()
+    summary = json.loads((args.run_dir / "summary.json").read_text())
+    with open(args.run_dir / "metrics.csv") as f:
+        metrics = list(csv.DictReader(f))
+    state = json.loads(args.state.read_text()) if args.state else None
+    evals = summary["evals"]
+
+    minutes = lambda s: f"{s / 60:.0f} min" if s is not None else "-"
+    steps = lambda v: f"{v:,}" if v is not None else "-"
+    import yaml
+
+    config = yaml.safe_load((args.run_dir / "config.yml").read_text())
+    seeded = int(config["sac"]["num_seed_steps"])
+    after_seed = [r for r in metrics if int(r["env_steps"]) > seeded]
+    rate = None
+    if len(after_seed) > 1:
+        first, last = after_seed[0], after_seed[-1]
+        rate = (int(last["env_steps"]) - int(first["env_steps"])) / (
+            float(last["time/total"]) - float(first["time/total"])
+        )
+    stage_1 = summary.get("stage_1_env_steps")
+    to = {t["threshold"]: t for t in summary["to_success"]}
+    ours = {
+        "env steps/s (with updates)": f"{summary['env_steps'] / summary['wall_s']:.1f} overall, "
+        + (f"{rate:.1f} after the seed steps" if rate else "-"),
+        "first train success": steps(first_train_success(state)),
+        "stage 1 ends": f"{steps(stage_1)} ({minutes(wall_at(metrics, stage_1) if stage_1 else None)})"
+        if stage_1
+        else f"not ended by {summary['env_steps']:,}",
+        "eval success ≥ 50 %": f"{steps(to[0.5]['env_steps'])} ({minutes(to[0.5]['wall_s'])})"
+        if to.get(0.5, {}).get("env_steps")
+        else "not reached",
+        "eval success ≥ 90 %": f"{steps(to[0.9]['env_steps'])} ({minutes(to[0.9]['wall_s'])})"
+        if to.get(0.9, {}).get("env_steps")
+        else "not reached",
+    }
+    print("| | official JAX implementation | rfcl |")
+    print("|---|---|---|")
+    for key, value in REFERENCE.items():
+        print(f"| {key} | {value} | {ours[key]} |")
+
+    print("\n| env steps | official: eval success | rfcl: success at end (success once) | rfcl wall time |")
+    print("|---|---|---|---|")
+    grid = sorted(set(REFERENCE_EVALS) | {round(e["env_steps"], -4) for e in evals})
+    by_step = {round(e["env_steps"], -4): e for e in evals}
+    for x in grid:
+        ref = REFERENCE_EVALS.get(x)
+        ref_text = (
+            "0.60-0.70" if x == 260_000 else f"{ref:.2f}" if ref is not None else "-"
+        )
+        e = by_step.get(x)
+        ours_text = f"{e['success_at_end']:.2f} ({e['success_once']:.2f})" if e else "-"
+        if e and e["env_steps"] != x:
+            ours_text += f" at {e['env_steps']:,}"
+        print(f"| {x:,} | {ref_text} | {ours_text} | {minutes(e['wall_s']) if e else '-'} |")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    ref_x = sorted(REFERENCE_EVALS)
+    ax.plot(ref_x, [REFERENCE_EVALS[x] for x in ref_x], "o-", color="tab:gray",
+            label="official JAX implementation")
+    ax.vlines(260_000, *REFERENCE_260K_RANGE, color="tab:gray")
+    ax.plot([e["env_steps"] for e in evals], [e["success_at_end"] for e in evals], "o-",
+            color="tab:blue", label="rfcl (success at end)")
+    ax.axvline(168_416, color="tab:gray", linestyle=":", label="stage 1 ends (official)")
+    if stage_1:
+        ax.axvline(stage_1, color="tab:blue", linestyle=":", label="stage 1 ends (rfcl)")
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:.0f}k"))
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("eval success (20 episodes)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title("PickCube-v1, 5 demos, seed 1, full preset, 2-core CPU")
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5))
+    fig.tight_layout()
+    fig.savefig(args.svg)
+    print(f"\ncurves: {args.svg}")
+
+
+if __name__ == "__main__":
+    main()
