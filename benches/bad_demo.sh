@@ -92,9 +92,6 @@ import json, sys
 from pathlib import Path
 out, seeds = Path(sys.argv[1]), sys.argv[2].split(",")
 
-def first(evals, bar):
-    return next((e["env_steps"] for e in evals if e["success_at_end"] >= bar), None)
-
 def at_bar(evals, bar=0.9, window=5):
     """Env steps when the mean of the last `window` evals first reaches `bar` (the run's stop)."""
     for i in range(window - 1, len(evals)):
@@ -102,8 +99,8 @@ def at_bar(evals, bar=0.9, window=5):
             return evals[i]["env_steps"]
     return None
 
-fmt = lambda v: f"{v:,}" if v is not None else "not reached"
-fmt1 = lambda v: f"{v:,}" if v is not None else "not ended"
+reached = lambda v: f"{v:,}" if v is not None else "not reached"
+ended = lambda v: f"{v:,}" if v is not None else "not ended"
 print("| demos | seed | first eval ≥ 50 % / ≥ 90 % | bar: mean of last 5 evals ≥ 90 % | stage 1 ended | stalled (share of stage-1 episodes) | ended |")
 print("|---|---|---|---|---|---|---|")
 bars = {}
@@ -113,14 +110,15 @@ for set_ in ["bad", "selected"]:
         if not path.exists():
             continue
         summary = json.loads(path.read_text())
-        evals = summary["evals"]
-        bar = at_bar(evals)
+        # The summary's first eval at each threshold; the bar (its stop rule) is computed here.
+        first = {t["threshold"]: t["env_steps"] for t in summary["to_success"]}
+        bar = at_bar(summary["evals"])
         bars.setdefault(set_, []).append(bar)
         stalled = [f"episode {d['episode_id']} at state {d['t']} ({d['difficulty']['episode_share']:.2f})"
                    for d in summary.get("demos", []) if d["difficulty"]["stalled"]]
         label = "5 (one bad)" if set_ == "bad" else "selected"
-        print(f"| {label} | {s} | {fmt(first(evals, 0.5))} / {fmt(first(evals, 0.9))} | {fmt(bar)} "
-              f"| {fmt1(summary.get('stage_1_env_steps'))} | {', '.join(stalled) or '-'} "
+        print(f"| {label} | {s} | {reached(first.get(0.5))} / {reached(first.get(0.9))} | {reached(bar)} "
+              f"| {ended(summary.get('stage_1_env_steps'))} | {', '.join(stalled) or '-'} "
               f"| {summary['ending']} at {summary['env_steps']:,} |")
 for set_, values in bars.items():
     reached = [v for v in values if v is not None]

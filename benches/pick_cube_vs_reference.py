@@ -14,6 +14,13 @@ import csv
 import json
 from pathlib import Path
 
+import matplotlib
+import yaml
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402 (after choosing the backend)
+import matplotlib.ticker  # noqa: E402
+
 # The reference run's figures (benches/RESULTS.md, "PickCube-v1 at the paper's settings"): eval
 # success at every 20,000 env steps where it was recorded (at 260k it was between 0.60 and 0.70),
 # its milestones and its rate.
@@ -25,10 +32,11 @@ REFERENCE_EVALS = {k * 20_000: 0.0 for k in range(1, 8)} | {
     260_000: 0.65,
 }
 REFERENCE_260K_RANGE = (0.60, 0.70)
+REFERENCE_STAGE_1 = 168_416
 REFERENCE = {
     "env steps/s (with updates)": "36.5",
     "first train success": "about 50,000",
-    "stage 1 ends": "168,416 (77 min)",
+    "stage 1 ends": f"{REFERENCE_STAGE_1:,} (77 min)",
     "eval success ≥ 50 %": "240,000 (110 min)",
     "eval success ≥ 90 %": "not reached by 260,000",
 }
@@ -63,8 +71,6 @@ def main():
 
     minutes = lambda s: f"{s / 60:.0f} min" if s is not None else "-"
     steps = lambda v: f"{v:,}" if v is not None else "-"
-    import yaml
-
     config = yaml.safe_load((args.run_dir / "config.yml").read_text())
     seeded = int(config["sac"]["num_seed_steps"])
     after_seed = [r for r in metrics if int(r["env_steps"]) > seeded]
@@ -76,19 +82,22 @@ def main():
         )
     stage_1 = summary.get("stage_1_env_steps")
     to = {t["threshold"]: t for t in summary["to_success"]}
+
+    def milestone(threshold):
+        hit = to.get(threshold, {})
+        if not hit.get("env_steps"):
+            return "not reached"
+        return f"{steps(hit['env_steps'])} ({minutes(hit['wall_s'])})"
+
     ours = {
         "env steps/s (with updates)": f"{summary['env_steps'] / summary['wall_s']:.1f} overall, "
         + (f"{rate:.1f} after the seed steps" if rate else "-"),
         "first train success": steps(first_train_success(state)),
-        "stage 1 ends": f"{steps(stage_1)} ({minutes(wall_at(metrics, stage_1) if stage_1 else None)})"
+        "stage 1 ends": f"{steps(stage_1)} ({minutes(wall_at(metrics, stage_1))})"
         if stage_1
         else f"not ended by {summary['env_steps']:,}",
-        "eval success ≥ 50 %": f"{steps(to[0.5]['env_steps'])} ({minutes(to[0.5]['wall_s'])})"
-        if to.get(0.5, {}).get("env_steps")
-        else "not reached",
-        "eval success ≥ 90 %": f"{steps(to[0.9]['env_steps'])} ({minutes(to[0.9]['wall_s'])})"
-        if to.get(0.9, {}).get("env_steps")
-        else "not reached",
+        "eval success ≥ 50 %": milestone(0.5),
+        "eval success ≥ 90 %": milestone(0.9),
     }
     print("| | official JAX implementation | rfcl |")
     print("|---|---|---|")
@@ -101,20 +110,16 @@ def main():
     by_step = {round(e["env_steps"], -4): e for e in evals}
     for x in grid:
         ref = REFERENCE_EVALS.get(x)
-        ref_text = (
-            "0.60-0.70" if x == 260_000 else f"{ref:.2f}" if ref is not None else "-"
-        )
+        if x == 260_000:
+            ref_text = "{:.2f}-{:.2f}".format(*REFERENCE_260K_RANGE)
+        else:
+            ref_text = f"{ref:.2f}" if ref is not None else "-"
+
         e = by_step.get(x)
         ours_text = f"{e['success_at_end']:.2f} ({e['success_once']:.2f})" if e else "-"
         if e and e["env_steps"] != x:
             ours_text += f" at {e['env_steps']:,}"
         print(f"| {x:,} | {ref_text} | {ours_text} | {minutes(e['wall_s']) if e else '-'} |")
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import matplotlib.ticker
 
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
     ref_x = sorted(REFERENCE_EVALS)
@@ -123,7 +128,7 @@ def main():
     ax.vlines(260_000, *REFERENCE_260K_RANGE, color="tab:gray")
     ax.plot([e["env_steps"] for e in evals], [e["success_at_end"] for e in evals], "o-",
             color="tab:blue", label="rfcl (success at end)")
-    ax.axvline(168_416, color="tab:gray", linestyle=":", label="stage 1 ends (official)")
+    ax.axvline(REFERENCE_STAGE_1, color="tab:gray", linestyle=":", label="stage 1 ends (official)")
     if stage_1:
         ax.axvline(stage_1, color="tab:blue", linestyle=":", label="stage 1 ends (rfcl)")
     ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:.0f}k"))
