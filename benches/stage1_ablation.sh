@@ -1,46 +1,57 @@
 #!/usr/bin/env bash
-# The paper's stage-1 ablation on PointMaze: env steps until stage 1 ends for (a) the per-demo
-# reverse curriculum with the dynamic time limit, (b) per-demo without it, (c) a global reverse
-# curriculum with it, (d) uniform start states over the demos; S seeds per row, one after another.
+# The paper's stage-1 ablation: env steps until stage 1 ends for (a) the per-demo reverse
+# curriculum with the dynamic time limit, (b) per-demo without it, (c) a global reverse curriculum
+# with it, (d) uniform start states over the demos; S seeds per row, one after another.
 #
-#   benches/stage1_ablation.sh [--seeds 1,2,3] [--rows a,b,c,d] [--demos FILE] [--out DIR]
+#   benches/stage1_ablation.sh [--env pointmaze|pick_cube] [--seeds 1,2,3] [--rows a,b,c,d]
+#                              [--demos FILE] [--out DIR]
 #
 # Each row is one preset of configs/ablations/ (docs/CONFIG.md, "Ablations"), run as a user would:
-#   target/release/rfcl train --run-dir DIR/<row>-sN configs/ablations/<row>.yml train.dataset_path=FILE seed=N
+#   target/release/rfcl train --run-dir DIR/<row>-sN configs/ablations/<env>_stage1_<row>.yml \
+#       train.dataset_path=FILE seed=N
 # A run ends with stage 1, or at train.steps (1M env steps) for a row that never ends it.
-# The demos default to runs/demos/pointmaze.h5 (made with `rfcl demos generate --env pointmaze -n 5`
-# when absent). Prints one Markdown table: per row, each seed's stage_1_env_steps (from
-# summary.json; "not ended" at the budget), their mean and a 95 % t-interval, and wall time.
+# The demos default to runs/demos/pointmaze.h5 or runs/demos/pick_cube_5.h5 (5 demos made with
+# `rfcl demos generate` when absent), the output to runs/stage1_ablation[_pick_cube]. Prints one
+# Markdown table: per row, each seed's stage_1_env_steps (from summary.json; "not ended" at the
+# budget), their mean and a 95 % t-interval, and wall time.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+env=pointmaze
 seeds=1,2,3
 rows=a,b,c,d
-demos=runs/demos/pointmaze.h5
-out=runs/stage1_ablation
+demos=
+out=
 while [[ $# -gt 0 ]]; do
     case $1 in
+        --env) env=$2; shift 2 ;;
         --seeds) seeds=$2; shift 2 ;;
         --rows) rows=$2; shift 2 ;;
         --demos) demos=$2; shift 2 ;;
         --out) out=$2; shift 2 ;;
-        -h|--help) sed -n '2,13p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
         *) echo "stage1_ablation.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
 done
+
+case $env in
+    pointmaze) env_id=pointmaze; demos=${demos:-runs/demos/pointmaze.h5}; out=${out:-runs/stage1_ablation} ;;
+    pick_cube) env_id=PickCube-v1; demos=${demos:-runs/demos/pick_cube_5.h5}; out=${out:-runs/stage1_ablation_pick_cube} ;;
+    *) echo "stage1_ablation.sh: --env is pointmaze or pick_cube, not $env" >&2; exit 2 ;;
+esac
 
 rfcl=target/release/rfcl
 [[ -x $rfcl ]] || { echo "stage1_ablation.sh: $rfcl is not built (cargo build --release)" >&2; exit 1; }
 if [[ ! -f $demos ]]; then
     mkdir -p "$(dirname "$demos")"
-    "$rfcl" demos generate --env pointmaze -n 5 --out "$demos"
+    "$rfcl" demos generate --env "$env_id" -n 5 --out "$demos"
 fi
 
 declare -A preset=(
-    [a]=pointmaze_stage1_per_demo
-    [b]=pointmaze_stage1_per_demo_no_time_limit
-    [c]=pointmaze_stage1_global
-    [d]=pointmaze_stage1_uniform
+    [a]=${env}_stage1_per_demo
+    [b]=${env}_stage1_per_demo_no_time_limit
+    [c]=${env}_stage1_global
+    [d]=${env}_stage1_uniform
 )
 mkdir -p "$out"
 for row in ${rows//,/ }; do

@@ -34,6 +34,12 @@ fn sigint_then_resume_runs_to_completion() {
     assert_eq!(status.code(), Some(130), "{}", first.stderr());
     let stopped = first.summary();
     assert_eq!(stopped["ending"], "interrupted");
+    // Records the learner took in but never used because it stopped count too: the two services'
+    // env steps agree up to the counted causes on an interrupted run as well.
+    assert_eq!(
+        stopped["env_steps_accounting"]["explained"], true,
+        "{stopped:#}"
+    );
     assert!(first.stderr().contains("--resume"), "says how to continue");
     for pid in child_pids(&processes) {
         assert!(!alive(pid), "child {pid} outlived the interrupted session");

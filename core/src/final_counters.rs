@@ -23,6 +23,12 @@ pub struct LearnerCounts {
     pub grpc_records: u64,
     pub shm_lost_records: u64,
     pub refused_batches: u64,
+    /// Records dropped because their stage epoch had ended (over the whole run, like
+    /// `env_steps`), and records this process took in but never used because it stopped first.
+    #[serde(default)]
+    pub dropped_stale_epoch: u64,
+    #[serde(default)]
+    pub unused_records: u64,
 }
 
 /// The file's content: the counts, and the learner process that wrote them.

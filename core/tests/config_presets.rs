@@ -356,54 +356,56 @@ fn pointmaze_presets_carry_spec_7_5_and_8_3() {
     }
 }
 
-/// The stage-1 ablation rows (`configs/ablations/`): each is `pointmaze_test.yml` run to the end of
-/// stage 1, with exactly its variant's keys changed and nothing else, so the table compares the
-/// variants and only them.
+/// The stage-1 ablation rows (`configs/ablations/`): per environment, one base run to the end of
+/// stage 1 (PointMaze: `pointmaze_test.yml`; PickCube-v1: the fast preset with a [128, 128]
+/// agent and 2 critics), and each row changes exactly its variant's keys and nothing else, so the
+/// table compares the variants and only them.
 #[test]
 fn stage_1_ablation_rows_change_only_their_variant() {
-    let base = load("pointmaze_test.yml");
-    let row = |name: &str, variant: &dyn Fn(&mut RunConfig)| {
-        let mut c = base.clone();
-        c.name = name.into();
+    let to_stage_1_end = |c: &mut RunConfig| {
         c.train.stage_1_only = true;
         c.train.steps = 1_000_000;
         c.service.stop_at_eval_success = None;
-        variant(&mut c);
-        c
     };
-    let rows: [(&str, RunConfig); 4] = [
-        (
-            "ablations/pointmaze_stage1_per_demo.yml",
-            row("ablation_stage1_per_demo", &|_| {}),
-        ),
-        (
-            "ablations/pointmaze_stage1_per_demo_no_time_limit.yml",
-            row("ablation_stage1_per_demo_no_time_limit", &|c| {
-                c.reverse.demo_horizon_to_max_steps_ratio = 0.0
-            }),
-        ),
-        (
-            "ablations/pointmaze_stage1_global.yml",
-            row("ablation_stage1_global", &|c| {
-                c.reverse.curriculum_method = CurriculumMethod::Global
-            }),
-        ),
-        (
-            "ablations/pointmaze_stage1_uniform.yml",
-            row("ablation_stage1_uniform", &|c| {
-                c.reverse.start_step_sampler = StartStepSampler::Uniform
-            }),
-        ),
+    let mut pointmaze = load("pointmaze_test.yml");
+    to_stage_1_end(&mut pointmaze);
+    let mut pick_cube = load("maniskill3/pick_cube.yml");
+    to_stage_1_end(&mut pick_cube);
+    pick_cube.network.actor_features = vec![128, 128];
+    pick_cube.network.critic_features = vec![128, 128];
+    pick_cube.sac.critic_ensemble = 2;
+    pick_cube.sac.target_pool = 2;
+    let variants: [(&str, &dyn Fn(&mut RunConfig)); 4] = [
+        ("per_demo", &|_| {}),
+        ("per_demo_no_time_limit", &|c| {
+            c.reverse.demo_horizon_to_max_steps_ratio = 0.0
+        }),
+        ("global", &|c| {
+            c.reverse.curriculum_method = CurriculumMethod::Global
+        }),
+        ("uniform", &|c| {
+            c.reverse.start_step_sampler = StartStepSampler::Uniform
+        }),
     ];
-    for (file, expected) in &rows {
-        assert_eq!(&load(file), expected, "{file}");
+    let mut listed = BTreeSet::new();
+    for (env, base, name_prefix) in [
+        ("pointmaze", &pointmaze, "ablation_stage1"),
+        ("pick_cube", &pick_cube, "ablation_pick_cube_stage1"),
+    ] {
+        for (variant, change) in &variants {
+            let file = format!("ablations/{env}_stage1_{variant}.yml");
+            let mut expected = base.clone();
+            expected.name = format!("{name_prefix}_{variant}");
+            change(&mut expected);
+            assert_eq!(load(&file), expected, "{file}");
+            listed.insert(file);
+        }
     }
     let files: BTreeSet<String> = preset_files()
         .into_iter()
         .filter(|f| f.starts_with("ablations"))
         .map(|f| f.to_string_lossy().into_owned())
         .collect();
-    let listed: BTreeSet<String> = rows.iter().map(|(f, _)| f.to_string()).collect();
     assert_eq!(files, listed, "every ablation row is checked here");
 }
 

@@ -187,6 +187,9 @@ pub struct TransportCounts {
 pub struct IngestCounters {
     pub grpc: TransportCounts,
     pub shm: TransportCounts,
+    /// Records queued (counted in `records` above) that the training thread never handled
+    /// because the run stopped first, either transport.
+    pub unused_records: AtomicU64,
 }
 
 /// One reading of [`IngestCounters`].
@@ -198,6 +201,7 @@ pub struct IngestTotals {
     pub shm_batches: u64,
     pub shm_lost_records: u64,
     pub refused_batches: u64,
+    pub unused_records: u64,
 }
 
 impl IngestCounters {
@@ -228,6 +232,7 @@ impl IngestCounters {
             shm_batches: get(&self.shm.batches),
             shm_lost_records: get(&self.shm.lost_records),
             refused_batches: get(&self.grpc.refused_batches) + get(&self.shm.refused_batches),
+            unused_records: get(&self.unused_records),
         }
     }
 
@@ -278,13 +283,15 @@ impl std::fmt::Display for IngestTotals {
         write!(
             f,
             "ingest_records_total{{transport=\"shm\"}}={} ingest_records_total{{transport=\"grpc\"}}={} \
-             (batches shm {} grpc {}); shm lost records {}; refused batches {}",
+             (batches shm {} grpc {}); shm lost records {}; refused batches {}; \
+             unused at the stop {}",
             self.shm_records,
             self.grpc_records,
             self.shm_batches,
             self.grpc_batches,
             self.shm_lost_records,
-            self.refused_batches
+            self.refused_batches,
+            self.unused_records
         )
     }
 }
@@ -292,6 +299,8 @@ impl std::fmt::Display for IngestTotals {
 /// Per-stream counts, shared by the `PushTransitions` handler and the training thread.
 #[derive(Debug)]
 pub struct StreamTally {
+    /// The learner's totals, where this stream's unused records are counted too.
+    counters: Arc<IngestCounters>,
     /// Records stored in the replay.
     pub accepted: AtomicU64,
     /// Records dropped because their stage epoch had ended (spec 4).
@@ -303,8 +312,9 @@ pub struct StreamTally {
 }
 
 impl StreamTally {
-    pub fn new() -> Arc<Self> {
+    pub fn new(counters: Arc<IngestCounters>) -> Arc<Self> {
         Arc::new(Self {
+            counters,
             accepted: AtomicU64::new(0),
             dropped_stale_epoch: AtomicU64::new(0),
             discarded: AtomicU64::new(0),
@@ -374,6 +384,10 @@ impl Drop for IngestItem {
         let left = self.remaining() as u64;
         if left > 0 {
             self.tally.discarded.fetch_add(left, Ordering::Relaxed);
+            self.tally
+                .counters
+                .unused_records
+                .fetch_add(left, Ordering::Relaxed);
         }
         self.tally.finished.send_modify(|n| *n += 1);
     }
@@ -519,7 +533,8 @@ mod tests {
     #[tokio::test]
     async fn dropping_items_finishes_them_and_counts_the_unused_records() {
         let layout = RecordLayout::new(3, 2);
-        let tally = StreamTally::new();
+        let counters = IngestCounters::new();
+        let tally = StreamTally::new(counters.clone());
         let records = batch(layout, &vec![transition(3, vec![0.0, 0.0]); 4]).records;
         let mut item = IngestItem::new(layout, records.clone(), 4, tally.clone());
         assert_eq!(item.record(3).actor_id(), 3);
@@ -527,6 +542,8 @@ mod tests {
         drop(item);
         drop(IngestItem::new(layout, records, 4, tally.clone()));
         tally.wait_finished(2).await;
+        // 1 left of the first item, 4 of the second: in the stream's tally and the totals.
         assert_eq!(tally.discarded.load(Ordering::Relaxed), 5);
+        assert_eq!(counters.totals().unused_records, 5);
     }
 }

@@ -388,6 +388,8 @@ async fn run(args: Args) -> Result<()> {
                 grpc_records: totals.grpc_records,
                 shm_lost_records: totals.shm_lost_records,
                 refused_batches: totals.refused_batches,
+                dropped_stale_epoch: s.dropped_stale_epoch,
+                unused_records: totals.unused_records,
             },
         };
         let path = run_dir.join(FINAL_COUNTERS_FILE);

@@ -239,7 +239,7 @@ impl Learner for LearnerService {
     ) -> Result<Response<v1::PushSummary>, Status> {
         let mut stream = request.into_inner();
         let mut stopping = self.stopping.clone();
-        let tally = StreamTally::new();
+        let tally = StreamTally::new(self.counters.clone());
         let mut queued = 0u64;
         loop {
             let message = tokio::select! {
@@ -258,11 +258,13 @@ impl Learner for LearnerService {
                 continue;
             }
             let item = IngestItem::new(self.layout, batch.records, info.count, tally.clone());
+            // Counted before the queue takes it, so Health never shows more stored than taken
+            // in; an item the queue does not take counts itself as unused.
+            self.counters.queued(Transport::Grpc, info.count as u64);
             tokio::select! {
                 sent = self.ingest.send(item) => sent.map_err(|_| shutting_down())?,
                 _ = stopping.wait_for(|s| *s) => return Err(shutting_down()),
             }
-            self.counters.queued(Transport::Grpc, info.count as u64);
             queued += 1;
         }
         tokio::select! {
@@ -308,6 +310,8 @@ impl Learner for LearnerService {
             shm_batches: t.shm_batches,
             shm_lost_records: t.shm_lost_records,
             refused_batches: t.refused_batches,
+            dropped_stale_epoch: s.dropped_stale_epoch,
+            unused_records: t.unused_records,
             unauthenticated_calls: self.guard.refused(),
             run_id: self.info.run_id.clone(),
             window: self.status.window().map(|w| window_to_wire(&w)),

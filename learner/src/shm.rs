@@ -105,8 +105,8 @@ impl ShmTransport {
                         layout,
                         status,
                         ingest,
+                        tally: StreamTally::new(counters.clone()),
                         counters,
-                        tally: StreamTally::new(),
                         queued: 0,
                         runtime,
                         expected: HashMap::new(),
@@ -274,9 +274,14 @@ impl IngestLoop {
             self.counters.queued(Transport::Shm, item.count as u64);
             self.queued += 1;
             if self.ingest.blocking_send(item).is_err() {
-                // The training thread has finished; the item counted itself as discarded.
+                // The training thread has finished; the item counted itself as unused.
                 break;
             }
+        }
+        // Records read from shared memory but not queued yet are taken in and unused (each item
+        // counts itself as it drops), so every record read is in the totals.
+        for item in pending {
+            self.counters.queued(Transport::Shm, item.count as u64);
         }
         let t = self.tally.summary();
         tracing::info!(

@@ -843,6 +843,8 @@ impl Session {
                 grpc_records: h.grpc_records,
                 shm_lost_records: h.shm_lost_records,
                 refused_batches: h.refused_batches,
+                dropped_stale_epoch: h.dropped_stale_epoch,
+                unused_records: h.unused_records,
             },
         };
         true
@@ -932,6 +934,8 @@ impl Session {
         if let Some(last) = learner_pid.and_then(|pid| read_final_counters(&self.prep.run_dir, pid))
         {
             self.counters = last;
+            // Kept over sessions: a resumed run's curriculum still counts these records' episodes.
+            self.prep.progress.unused_records += last.counts.unused_records;
         }
         self.server.stop(SERVER_GRACE).await;
         let _ = std::fs::remove_file(self.prep.run_dir.join("processes.json"));

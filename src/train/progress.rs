@@ -46,6 +46,10 @@ pub struct RunProgress {
     /// Every restart of the learner or the curriculum server, in order.
     #[serde(default)]
     pub restarts: Vec<ServiceRestart>,
+    /// Transition records the learners of the sessions so far took in but never used because
+    /// their session stopped first (each clean stop's `learner_final.json`).
+    #[serde(default)]
+    pub unused_records: u64,
 }
 
 /// A service that died and was restarted from its last checkpoint or snapshot.
@@ -331,7 +335,9 @@ pub struct Summary {
 ///   reports, reports lost when the curriculum server rolled back to its snapshot), each at most
 ///   `horizon` steps;
 /// * the curriculum has more by the steps the learner lost when it rolled back to its
-///   checkpoint, and the records lost between shared-memory frames or in refused batches.
+///   checkpoint, the records lost between shared-memory frames or in refused batches, the records
+///   the learner dropped because their stage epoch had ended, and those it took in but never
+///   used because a session stopped first.
 ///
 /// `explained` says whether the difference lies within those bounds.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -348,6 +354,12 @@ pub struct StepAccounting {
     /// Records lost between shared-memory frames, and batches refused whole.
     pub lost_records: u64,
     pub refused_batches: u64,
+    /// Records the learner received but did not store: their stage epoch had ended, or a session
+    /// stopped before it used them.
+    #[serde(default)]
+    pub dropped_stale_epoch: u64,
+    #[serde(default)]
+    pub unused_records: u64,
     pub explained: bool,
 }
 
@@ -372,7 +384,9 @@ impl StepAccounting {
         let more_in_curriculum = in_flight_at_most
             + learner_rolled_back
             + counts.lost_records
-            + counts.refused_batches * counts.batch_records;
+            + counts.refused_batches * counts.batch_records
+            + counts.dropped_stale_epoch
+            + counts.unused_records;
         let difference = learner_env_steps as i64 - curriculum_env_steps as i64;
         Self {
             learner_minus_curriculum: difference,
@@ -381,6 +395,8 @@ impl StepAccounting {
             learner_rolled_back,
             lost_records: counts.lost_records,
             refused_batches: counts.refused_batches,
+            dropped_stale_epoch: counts.dropped_stale_epoch,
+            unused_records: counts.unused_records,
             explained: -(more_in_curriculum as i64) <= difference
                 && difference <= more_in_learner as i64,
         }
@@ -399,6 +415,8 @@ pub struct UncountedSteps<'a> {
     pub refused_reports: u64,
     pub lost_records: u64,
     pub refused_batches: u64,
+    pub dropped_stale_epoch: u64,
+    pub unused_records: u64,
     pub restarts: &'a [ServiceRestart],
 }
 
@@ -463,6 +481,8 @@ pub fn summarize(
             refused_reports: view.refused_reports.total(),
             lost_records: counts.shm_lost_records,
             refused_batches: counts.refused_batches,
+            dropped_stale_epoch: counts.dropped_stale_epoch,
+            unused_records: progress.unused_records,
             restarts: &progress.restarts,
         },
     );
@@ -716,6 +736,7 @@ mod tests {
         let progress = RunProgress {
             sessions: 2,
             actor_respawns: 1,
+            unused_records: 30,
             ..RunProgress::default()
         };
         let learner = LearnerCounters {
@@ -728,6 +749,9 @@ mod tests {
                 grpc_records: 100,
                 shm_lost_records: 7,
                 refused_batches: 1,
+                dropped_stale_epoch: 5,
+                // This session's, already in `progress.unused_records` with the earlier ones'.
+                unused_records: 20,
             },
         };
         let shape = RunShape {
@@ -757,6 +781,7 @@ mod tests {
         assert_eq!((a.learner_minus_curriculum, a.in_flight_at_most), (200, 20));
         assert_eq!(a.unreported_episodes, 10);
         assert!(!a.explained);
+        assert_eq!((a.dropped_stale_epoch, a.unused_records), (5, 30));
         assert_eq!(json["learner_counters"], "final");
         // A final reply is taken as it is: its transport counts and env steps are one moment's.
         let final_reply = LearnerCounters {
@@ -834,6 +859,8 @@ mod tests {
             refused_reports: 1,
             lost_records: 10,
             refused_batches: 1,
+            dropped_stale_epoch: 0,
+            unused_records: 0,
             restarts: &restarts,
         };
         // Learner side: 8 × 50 in flight + (2 + 1 + 3) × 50 unreported = 700.
@@ -848,6 +875,19 @@ mod tests {
         );
         assert_eq!(a.unreported_episodes, 6);
         assert!(!StepAccounting::new(10_000, 10_975, counts).explained);
+        // Records the learner received and did not store count on the curriculum's side too:
+        // 974 + 1,088 stale + 320 unused = 2,382 (a run interrupted in stage 2).
+        let counts = UncountedSteps {
+            dropped_stale_epoch: 1_088,
+            unused_records: 320,
+            ..counts
+        };
+        let a = StepAccounting::new(10_000, 12_382, counts);
+        assert!(a.explained);
+        assert_eq!((a.dropped_stale_epoch, a.unused_records), (1_088, 320));
+        assert!(!StepAccounting::new(10_000, 12_383, counts).explained);
+        // They do not widen the learner's side.
+        assert!(!StepAccounting::new(10_701, 10_000, counts).explained);
     }
 
     #[test]
