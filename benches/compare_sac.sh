@@ -11,8 +11,8 @@
 # cores with taskset and with N compute threads. Before each round it waits (up to --max-wait-s)
 # for the 1-minute load average to drop below --max-load, because other processes on a 2-core
 # machine make either side several times slower; the load seen at each start is in the output.
-# OMP_WAIT_POLICY defaults to ACTIVE (libgomp's spinning, best on an idle machine); pass
-# OMP_WAIT_POLICY=PASSIVE to measure the learner as `rfcl train` starts it.
+# OMP_WAIT_POLICY defaults to PASSIVE, as `rfcl train` starts the learner; pass
+# OMP_WAIT_POLICY=ACTIVE for libgomp's spinning (it suits per-op threads, not ensemble members).
 #
 # Needs: the venv with python/requirements-bench.txt (jax, flax, optax). Prints one JSON object:
 # every run's report, the loads, and per round and schedule the ratio rust / jax.
@@ -49,9 +49,10 @@ fi
 # shellcheck disable=SC1091
 source .venv/bin/activate
 export LIBTORCH_USE_PYTORCH=1 PYO3_PYTHON=$PWD/.venv/bin/python
-# libgomp's own default (spinning) unless the caller sets OMP_WAIT_POLICY: on an idle machine
-# PASSIVE costs libtorch ~38% here (55 -> 34 updates/s, benches/RESULTS.md).
-export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-ACTIVE}
+# The learner's default parallelism runs critic members on their own threads; a spinning OpenMP
+# team then takes the core another member needs (members: 0.52-0.59x JAX under ACTIVE, 0.85-0.88x
+# under PASSIVE, benches/RESULTS.md). Per-op threads are the other way round.
+export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
 cores="0-$((threads - 1))"
 out=$(mktemp -d)
 trap 'rm -rf "$out"' EXIT
