@@ -54,28 +54,51 @@ impl Adam {
 
     /// One Adam step with the given gradients (consumed as scratch).
     pub fn step(&mut self, grads: Vec<Tensor>) {
+        let step = self.begin_step();
+        tch::no_grad(|| {
+            for (i, grad) in grads.into_iter().enumerate() {
+                step.apply(
+                    &self.params[i].1,
+                    &mut self.exp_avg[i],
+                    &mut self.exp_avg_sq[i],
+                    &mut self.scratch[i],
+                    grad,
+                );
+            }
+        });
+    }
+
+    /// Counts a step and returns its scalars, for [`AdamSlice::step`] on every slice of the
+    /// parameters (see [`slice`](Self::slice)).
+    pub fn begin_step(&mut self) -> AdamStep {
         self.step += 1;
         let bias1 = 1.0 - self.beta1.powi(self.step as i32);
         let bias2_sqrt = (1.0 - self.beta2.powi(self.step as i32)).sqrt();
         // lr · m̂ / (√v̂ + ε) = m / ((√v + ε·√c2) · c1 / (lr · √c2))
-        let step_size = self.lr * bias2_sqrt / bias1;
-        let eps = self.eps * bias2_sqrt;
-        tch::no_grad(|| {
-            for (i, mut grad) in grads.into_iter().enumerate() {
-                let (m, v, denom) = (
-                    &mut self.exp_avg[i],
-                    &mut self.exp_avg_sq[i],
-                    &mut self.scratch[i],
-                );
-                let _ = m.lerp_(&grad, 1.0 - self.beta1);
-                let _ = grad.square_();
-                let _ = v.lerp_(&grad, 1.0 - self.beta2);
-                let _ = v.sqrt_out(denom);
-                let _ = denom.g_add_scalar_(eps);
-                let _ = denom.g_mul_scalar_(-1.0 / step_size);
-                let _ = self.params[i].1.addcdiv_(m, denom);
-            }
-        });
+        AdamStep {
+            step_size: self.lr * bias2_sqrt / bias1,
+            eps: self.eps * bias2_sqrt,
+            beta1: self.beta1,
+            beta2: self.beta2,
+        }
+    }
+
+    /// Entries `start..start + len` along the first dimension of every parameter and of its
+    /// optimiser state, as views of them: a critic ensemble's members, whose disjoint slices
+    /// threads can step at once. Every parameter must have that first dimension.
+    pub fn slice(&self, start: i64, len: i64) -> AdamSlice {
+        let narrow =
+            |ts: &[Tensor]| -> Vec<Tensor> { ts.iter().map(|t| t.narrow(0, start, len)).collect() };
+        AdamSlice {
+            params: self
+                .params
+                .iter()
+                .map(|(_, p)| p.detach().narrow(0, start, len))
+                .collect(),
+            exp_avg: narrow(&self.exp_avg),
+            exp_avg_sq: narrow(&self.exp_avg_sq),
+            scratch: narrow(&self.scratch),
+        }
     }
 
     /// Steps taken so far.
@@ -116,5 +139,65 @@ impl Adam {
             }
             Ok(())
         })
+    }
+}
+
+/// The scalars of one Adam step, the same for every parameter and every slice of one.
+#[derive(Debug, Clone, Copy)]
+pub struct AdamStep {
+    /// lr · √(1 − β2ᵗ) / (1 − β1ᵗ).
+    step_size: f64,
+    /// ε · √(1 − β2ᵗ).
+    eps: f64,
+    beta1: f64,
+    beta2: f64,
+}
+
+impl AdamStep {
+    /// Spec 5.3 "Optimisers": torch's Adam update of `param` with moments `m`, `v`, in place,
+    /// with the bias corrections folded into the step's scalars; `denom` is scratch and `grad`
+    /// is consumed as scratch.
+    fn apply(
+        &self,
+        param: &Tensor,
+        m: &mut Tensor,
+        v: &mut Tensor,
+        denom: &mut Tensor,
+        mut grad: Tensor,
+    ) {
+        let _ = m.lerp_(&grad, 1.0 - self.beta1);
+        let _ = grad.square_();
+        let _ = v.lerp_(&grad, 1.0 - self.beta2);
+        let _ = v.sqrt_out(denom);
+        let _ = denom.g_add_scalar_(self.eps);
+        let _ = denom.g_mul_scalar_(-1.0 / self.step_size);
+        let _ = param.shallow_clone().addcdiv_(m, denom);
+    }
+}
+
+/// A slice of an [`Adam`]'s parameters and state (see [`Adam::slice`]), sharing their memory.
+#[derive(Debug)]
+pub struct AdamSlice {
+    params: Vec<Tensor>,
+    exp_avg: Vec<Tensor>,
+    exp_avg_sq: Vec<Tensor>,
+    scratch: Vec<Tensor>,
+}
+
+impl AdamSlice {
+    /// The slice's part of step `step`, with the gradients of the sliced parameters (in
+    /// [`Adam::params`] order, consumed as scratch).
+    pub fn step(&mut self, step: AdamStep, grads: Vec<Tensor>) {
+        tch::no_grad(|| {
+            for (i, grad) in grads.into_iter().enumerate() {
+                step.apply(
+                    &self.params[i],
+                    &mut self.exp_avg[i],
+                    &mut self.exp_avg_sq[i],
+                    &mut self.scratch[i],
+                    grad,
+                );
+            }
+        });
     }
 }

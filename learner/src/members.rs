@@ -1,33 +1,36 @@
-//! Member-parallel execution of the critic ensemble: the members of a critic or actor update
-//! split over threads, on a CPU, when libtorch's own per-op threading leaves cores idle for
+//! Member-parallel execution of SAC updates: on a CPU, the work of one update spread over threads
+//! with single-threaded libtorch ops, where libtorch's own per-op threading leaves cores idle for
 //! networks of RFCL's size (benches/RESULTS.md; docs/LEARNER.md "Threads").
 //!
-//! The maths are those of the single batched computation in [`crate::sac`] (same losses, same
-//! gradients up to float summation order, same RNG draws: [`Sac`](crate::Sac) draws noise and
-//! target members before choosing how to run an update); only the work is spread. This module
-//! holds the how: which members go to which shard ([`shard_ranges`]), the threads that take the
-//! shards ([`run_on_threads`]), and how the shards' parts are joined back into the update's loss
-//! and gradients. CUDA ignores it (one batched computation per update).
+//! The maths are those of one batched computation on one thread (same losses, same gradients up
+//! to float summation order, same RNG draws: [`Sac`](crate::Sac) draws noise and target members
+//! before the work is spread); only the work is spread, two ways:
+//! * a critic update splits the ensemble's members into contiguous shards ([`shard_ranges`]);
+//!   each shard computes its members' loss and gradients and then steps the optimiser and the
+//!   Polyak average for its own members ([`MemberThreads::critic_update`]);
+//! * per-row work (the critic's regression target, the actor's loss and gradients) splits the
+//!   minibatch's rows, one range per thread ([`MemberThreads::by_rows`]).
+//!
+//! The threads ([`run_on_threads`]) take jobs from a shared queue until none is left. With one
+//! thread, the same jobs run on the calling thread (one shard of all members, one range of all
+//! rows), which is also how CUDA runs them.
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 
 use tch::{Device, Tensor};
 
+use crate::adam::{Adam, AdamSlice, AdamStep};
 use crate::batch::Batch;
-use crate::nets::{CriticEnsemble, PolicySample};
-use crate::sac::{mean_squared_td_error, policy_loss, CriticStep};
+use crate::nets::CriticEnsemble;
+use crate::sac::{mean_squared_td_error, polyak_update, CriticStep};
 
 /// Shards per member thread (see [`MemberThreads::per_thread`]). One: on the 2-core machine with a
 /// MetaWorld run's actors beside the learner, two shards per thread (finer work, balanced by the
 /// queue) were no faster (54-62 critic updates/s; one shard per thread 54-70 in the same run).
 pub const SHARDS_PER_THREAD: usize = 1;
 
-/// How an agent runs its critic ensemble's members: on how many threads (1 = one batched
-/// computation on the calling thread), split into how many contiguous shards.
-///
-/// With more than one thread, every critic and actor update splits the members into shards, which
-/// the threads (each with single-threaded libtorch ops) take from a shared queue until none is
-/// left; then their gradients are joined.
+/// How an agent spreads its updates: on how many threads (1 = everything on the calling thread),
+/// with the critic ensemble's members split into how many contiguous shards.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MemberThreads {
     threads: usize,
@@ -76,16 +79,21 @@ impl MemberThreads {
         self.threads > 1
     }
 
-    /// The critic loss's value and its gradients (in the critic optimiser's parameter order) for
-    /// regression target `target`, with the members split over the threads. Shard s of E_s
-    /// members returns its mean squared TD error times E_s/E: the shards' losses then add up to
-    /// the mean over all E members, and each member's gradient is the one of the whole loss.
-    pub fn critic_gradients(
+    /// One critic update with the members split over the threads: each shard computes its
+    /// members' loss and gradients for regression target `target`, steps its slice of the
+    /// optimiser (`opt`, step `step`) and then Polyak-averages its slice of the target critic
+    /// (`polyak`: (target, online) pairs, every one member-stacked; spec 5.2 3.1), so the
+    /// optimiser and Polyak steps run on every thread too. Shard s of E_s members takes its mean
+    /// squared TD error times E_s/E: the shards' losses add up to the mean over all E members, and
+    /// each member's gradient is the one of the whole loss.
+    pub fn critic_update(
         &self,
         critic: &CriticEnsemble,
+        (opt, step): (&Adam, AdamStep),
+        (polyak, tau): (&[(Tensor, Tensor)], f64),
         minibatch: &Batch,
         target: &Tensor,
-    ) -> (CriticStep, Vec<Tensor>) {
+    ) -> CriticStep {
         let members = critic.members();
         let jobs: Vec<CriticShardJob> = shard_ranges(members, self.shards)
             .into_iter()
@@ -95,48 +103,40 @@ impl MemberThreads {
                 obs: minibatch.obs.shallow_clone(),
                 action: minibatch.action.shallow_clone(),
                 target: target.shallow_clone(),
+                opt: opt.slice(start, len),
+                step,
+                polyak: polyak
+                    .iter()
+                    .map(|(t, o)| (t.narrow(0, start, len), o.narrow(0, start, len)))
+                    .collect(),
+                tau,
             })
             .collect();
         let parts = run_on_threads(jobs, self.threads, CriticShardJob::run);
         let loss = Tensor::stack(&parts.iter().map(|p| &p.loss).collect::<Vec<_>>(), 0).sum(None);
         let q_sum = Tensor::stack(&parts.iter().map(|p| &p.q_sum).collect::<Vec<_>>(), 0).sum(None);
-        let params = parts[0].grads.len();
-        let grads = (0..params)
-            .map(|i| Tensor::cat(&parts.iter().map(|p| &p.grads[i]).collect::<Vec<_>>(), 0))
-            .collect();
         let q = q_sum / (members * minibatch.rows()) as f64;
-        (CriticStep { loss, q }, grads)
+        CriticStep { loss, q }
     }
 
-    /// Spec 5.3 "Actor" for the policy sample `pi` at `obs`, with the critic members split over
-    /// the threads: (the loss's value, a surrogate with the loss's gradient for the actor).
-    /// Each shard returns Σ_k Q_k(s, a) over its members and its gradient with respect to the
-    /// action; with g = ∂ mean_k Q_k / ∂a, the surrogate replaces mean_k Q_k(s, a) by a·g, whose
-    /// gradient through a = tanh(u(θ)) is the same.
-    pub fn actor_loss(
+    /// A per-row computation on `rows` rows, such as the critic's regression target or the
+    /// actor's loss and gradients: the rows split into one contiguous range per thread,
+    /// `job(start, len)` prepares each range's work (on the calling thread), the threads `run`
+    /// them; the parts in row order. Not parallel: one job on all rows, run here.
+    pub fn by_rows<J: Send, T: Send>(
         &self,
-        critic: &CriticEnsemble,
-        alpha: &Tensor,
-        obs: &Tensor,
-        pi: &PolicySample,
-    ) -> (Tensor, Tensor) {
-        let members = critic.members();
-        let jobs: Vec<ActorShardJob> = shard_ranges(members, self.shards)
+        rows: i64,
+        job: impl Fn(i64, i64) -> J,
+        run: fn(J) -> T,
+    ) -> Vec<T> {
+        if !self.is_parallel() {
+            return vec![run(job(0, rows))];
+        }
+        let jobs = shard_ranges(rows, self.threads)
             .into_iter()
-            .map(|(start, len)| ActorShardJob {
-                shard: critic.shard(start, len, false),
-                obs: obs.shallow_clone(),
-                action: pi.action.detach().set_requires_grad(true),
-            })
+            .map(|(start, len)| job(start, len))
             .collect();
-        let parts = run_on_threads(jobs, self.threads, ActorShardJob::run);
-        let sum = |ts: Vec<&Tensor>| Tensor::stack(&ts, 0).sum_dim_intlist(0, false, None);
-        let q_mean = sum(parts.iter().map(|p| &p.q_sum).collect()) / members as f64;
-        let grad_mean = sum(parts.iter().map(|p| &p.action_grad).collect()) / members as f64;
-        let value = policy_loss(alpha, &pi.log_prob.detach(), &q_mean.unsqueeze(0));
-        let linearised_q = (&pi.action * grad_mean).sum_dim_intlist(-1, false, None);
-        let surrogate = policy_loss(alpha, &pi.log_prob, &linearised_q.unsqueeze(0));
-        (value, surrogate)
+        run_on_threads(jobs, self.threads, run)
     }
 }
 
@@ -198,7 +198,7 @@ fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, threads: usize, work: fn(J) ->
         .collect()
 }
 
-/// One shard's share of a critic update (see [`MemberThreads::critic_gradients`]).
+/// One shard's share of a critic update (see [`MemberThreads::critic_update`]).
 struct CriticShardJob {
     shard: CriticEnsemble,
     /// E_s / E.
@@ -206,16 +206,21 @@ struct CriticShardJob {
     obs: Tensor,
     action: Tensor,
     target: Tensor,
+    /// The shard's slice of the critic optimiser, and the step to take.
+    opt: AdamSlice,
+    step: AdamStep,
+    /// The shard's slices of the (target, online) parameter pairs, and the Polyak rate.
+    polyak: Vec<(Tensor, Tensor)>,
+    tau: f64,
 }
 
 struct CriticShardPart {
     loss: Tensor,
     q_sum: Tensor,
-    grads: Vec<Tensor>,
 }
 
 impl CriticShardJob {
-    fn run(self) -> CriticShardPart {
+    fn run(mut self) -> CriticShardPart {
         let q = self.shard.forward(&self.obs, &self.action);
         let loss = mean_squared_td_error(&q, &self.target) * self.weight;
         let params: Vec<Tensor> = self
@@ -225,40 +230,11 @@ impl CriticShardJob {
             .map(|(_, p)| p)
             .collect();
         let grads = Tensor::run_backward(&[&loss], &params, false, false);
+        self.opt.step(self.step, grads);
+        polyak_update(&self.polyak, self.tau);
         CriticShardPart {
             loss: loss.detach(),
             q_sum: q.detach().sum(None),
-            grads,
-        }
-    }
-}
-
-/// One shard's share of an actor update (see [`MemberThreads::actor_loss`]).
-struct ActorShardJob {
-    /// Parameters without gradients: only ∂Q/∂a is taken.
-    shard: CriticEnsemble,
-    obs: Tensor,
-    /// A leaf copy of the policy's action, requiring gradients.
-    action: Tensor,
-}
-
-struct ActorShardPart {
-    /// Σ_k Q_k(s, a) over the shard's members, `[B]`.
-    q_sum: Tensor,
-    /// ∂ Σ_k Σ_b Q_k(s_b, a_b) / ∂a, `[B, A]`.
-    action_grad: Tensor,
-}
-
-impl ActorShardJob {
-    fn run(self) -> ActorShardPart {
-        let q_sum = self
-            .shard
-            .forward(&self.obs, &self.action)
-            .sum_dim_intlist(0, false, None);
-        let mut grads = Tensor::run_backward(&[&q_sum.sum(None)], &[&self.action], false, false);
-        ActorShardPart {
-            q_sum: q_sum.detach(),
-            action_grad: grads.pop().expect("one input, one gradient"),
         }
     }
 }

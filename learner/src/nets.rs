@@ -188,13 +188,22 @@ impl CriticEnsemble {
         self.map_params(members.len() as i64, |p| p.detach().index_select(0, &index))
     }
 
+    /// The same ensemble on the same parameter tensors (no copy): a handle that another thread can
+    /// own (tensors are `Send`, not `Sync`).
+    pub fn shallow_clone(&self) -> CriticEnsemble {
+        self.map_params(self.members, Tensor::shallow_clone)
+    }
+
     /// Members `start..start + len` as a sub-ensemble whose parameters share this ensemble's
     /// memory (no copy) but are fresh autograd leaves, so a thread can run them and take gradients
     /// with respect to them alone (see [`crate::members`]). `requires_grad` makes the
-    /// leaves trainable; without it gradients can still flow through them to the inputs.
+    /// leaves trainable; without it gradients can still flow through them to the inputs. The
+    /// leaves have a version counter of their own (`Tensor::data`, not `detach`): another shard's
+    /// in-place optimiser step on its own members, while this shard's backward still runs, must
+    /// not count as a change to the tensors this shard saved.
     pub fn shard(&self, start: i64, len: i64, requires_grad: bool) -> CriticEnsemble {
         self.map_params(len, |p| {
-            p.detach()
+            p.data()
                 .narrow(0, start, len)
                 .set_requires_grad(requires_grad)
         })

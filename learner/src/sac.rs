@@ -258,7 +258,8 @@ impl Sac {
         })
     }
 
-    /// One critic update (spec 5.3 "Critic") followed by the Polyak target step (spec 5.2 3.1).
+    /// One critic update (spec 5.3 "Critic") followed by the Polyak target step (spec 5.2 3.1),
+    /// spread over the member threads (see [`crate::members`]).
     pub fn update_critic(&mut self, minibatch: &Batch) -> CriticStep {
         let members = draw_target_members(
             &mut self.rng,
@@ -266,23 +267,15 @@ impl Sac {
             self.cfg.num_min_qs as usize,
         );
         let noise = self.policy_noise(minibatch.rows());
-        let threads = self.member_threads;
-        let step = if threads.is_parallel() {
-            // The same loss and gradients, the members computed on several threads.
-            let target = self.critic_target(minibatch, &members, &noise);
-            let (step, grads) = threads.critic_gradients(&self.critic, minibatch, &target);
-            self.critic_opt.step(grads);
-            step
-        } else {
-            let (loss, q) = self.critic_loss(minibatch, &members, &noise);
-            self.critic_opt.minimize(&loss);
-            CriticStep {
-                loss: loss.detach(),
-                q: q.mean(None).detach(),
-            }
-        };
-        polyak_update(&self.polyak_pairs, self.cfg.tau);
-        step
+        let target = self.critic_target(minibatch, &members, &noise);
+        let step = self.critic_opt.begin_step();
+        self.member_threads.critic_update(
+            &self.critic,
+            (&self.critic_opt, step),
+            (&self.polyak_pairs, self.cfg.tau),
+            minibatch,
+            &target,
+        )
     }
 
     /// The critic loss for given target members and policy noise at s′: (loss, Q `[E, B]`).
@@ -299,44 +292,52 @@ impl Sac {
 
     /// The regression target y `[B]` of spec 5.3 "Critic" (no autograd history), for given target
     /// members and policy noise at s′.
+    /// With member threads, each thread computes the target of a range of the minibatch's rows.
     pub fn critic_target(&self, minibatch: &Batch, members: &[i64], noise: &Tensor) -> Tensor {
-        tch::no_grad(|| {
-            let next = self.actor.sample(&minibatch.next_obs, noise);
-            let next_q = self
-                .target_critic
-                .select(members)
-                .forward(&minibatch.next_obs, &next.action);
-            let mut next_v = next_q.amin(0, false);
-            if self.cfg.backup_entropy {
-                next_v -= self.alpha() * next.log_prob;
-            }
-            bellman_target(
-                &minibatch.reward,
-                &minibatch.mask,
-                &next_v,
-                self.cfg.discount,
-            )
-        })
+        let target_critic = self.target_critic.select(members);
+        let alpha = self.cfg.backup_entropy.then(|| self.alpha());
+        let job = |start: i64, len: i64| TargetRows {
+            actor: self.actor.shallow_clone(),
+            target_critic: target_critic.shallow_clone(),
+            alpha: alpha.as_ref().map(Tensor::shallow_clone),
+            next_obs: minibatch.next_obs.narrow(0, start, len),
+            noise: noise.narrow(0, start, len),
+            reward: minibatch.reward.narrow(0, start, len),
+            mask: minibatch.mask.narrow(0, start, len),
+            discount: self.cfg.discount,
+        };
+        let parts = self
+            .member_threads
+            .by_rows(minibatch.rows(), job, TargetRows::target);
+        Tensor::cat(&parts, 0)
     }
 
-    /// One actor update (spec 5.3 "Actor"): gradients reach the actor only.
+    /// One actor update (spec 5.3 "Actor"): gradients reach the actor only. With member threads,
+    /// each thread takes the loss and gradients of a range of the rows, which add up to the
+    /// minibatch's.
     pub fn update_actor(&mut self, obs: &Tensor) -> ActorStep {
-        let noise = self.policy_noise(obs.size()[0]);
-        let threads = self.member_threads;
-        let (loss, log_prob) = if threads.is_parallel() {
-            // The same loss and actor gradient, the members computed on several threads.
-            let pi = self.actor.sample(obs, &noise);
-            let (value, surrogate) = threads.actor_loss(&self.critic, &self.alpha(), obs, &pi);
-            self.actor_opt.minimize(&surrogate);
-            (value, pi.log_prob)
-        } else {
-            let (loss, log_prob) = self.actor_loss(obs, &noise);
-            self.actor_opt.minimize(&loss);
-            (loss, log_prob)
+        let rows = obs.size()[0];
+        let noise = self.policy_noise(rows);
+        let critic = self.critic.shard(0, self.critic.members(), false);
+        let alpha = self.alpha();
+        let params = self.actor_opt.params();
+        let job = |start: i64, len: i64| ActorRows {
+            actor: self.actor.shallow_clone(),
+            params: params.iter().map(|p| p.shallow_clone()).collect(),
+            critic: critic.shallow_clone(),
+            alpha: alpha.shallow_clone(),
+            obs: obs.narrow(0, start, len),
+            noise: noise.narrow(0, start, len),
+            weight: len as f64 / rows as f64,
         };
+        let parts = self.member_threads.by_rows(rows, job, ActorRows::run);
+        let grads = (0..params.len())
+            .map(|i| sum(parts.iter().map(|p| &p.grads[i])))
+            .collect();
+        self.actor_opt.step(grads);
         ActorStep {
-            loss: loss.detach(),
-            entropy: -log_prob.mean(None).detach(),
+            loss: sum(parts.iter().map(|p| &p.loss)),
+            entropy: -sum(parts.iter().map(|p| &p.log_prob_sum)) / rows as f64,
         }
     }
 
@@ -466,6 +467,79 @@ impl Sac {
     pub fn config(&self) -> &SacConfig {
         &self.cfg
     }
+}
+
+/// The inputs of the critic's regression target for a range of a minibatch's rows (see
+/// [`Sac::critic_target`]), owned so that a member thread can compute it.
+struct TargetRows {
+    actor: Actor,
+    /// The drawn target members.
+    target_critic: CriticEnsemble,
+    /// α when the target backs up the entropy term.
+    alpha: Option<Tensor>,
+    next_obs: Tensor,
+    noise: Tensor,
+    reward: Tensor,
+    mask: Tensor,
+    discount: f64,
+}
+
+impl TargetRows {
+    /// Spec 5.3 "Critic" steps 1-3: y `[rows]`, without autograd history.
+    fn target(self) -> Tensor {
+        tch::no_grad(|| {
+            let next = self.actor.sample(&self.next_obs, &self.noise);
+            let next_q = self.target_critic.forward(&self.next_obs, &next.action);
+            let mut next_v = next_q.amin(0, false);
+            if let Some(alpha) = &self.alpha {
+                next_v -= alpha * next.log_prob;
+            }
+            bellman_target(&self.reward, &self.mask, &next_v, self.discount)
+        })
+    }
+}
+
+/// An actor update's work on a range of the minibatch's rows (see [`Sac::update_actor`]), owned
+/// so that a member thread can do it.
+struct ActorRows {
+    actor: Actor,
+    /// The actor's parameters, in its optimiser's order.
+    params: Vec<Tensor>,
+    /// The critic ensemble, without gradients for its parameters (they reach the actor only).
+    critic: CriticEnsemble,
+    alpha: Tensor,
+    obs: Tensor,
+    noise: Tensor,
+    /// The range's share of the rows, rows / B.
+    weight: f64,
+}
+
+struct ActorRowsPart {
+    /// The loss of spec 5.3 "Actor" on these rows times their share of the minibatch.
+    loss: Tensor,
+    /// Σ log π over these rows.
+    log_prob_sum: Tensor,
+    /// The gradients of `loss` with respect to the actor's parameters.
+    grads: Vec<Tensor>,
+}
+
+impl ActorRows {
+    fn run(self) -> ActorRowsPart {
+        let pi = self.actor.sample(&self.obs, &self.noise);
+        let q = self.critic.forward(&self.obs, &pi.action);
+        let loss = policy_loss(&self.alpha, &pi.log_prob, &q) * self.weight;
+        let grads = Tensor::run_backward(&[&loss], &self.params, false, false);
+        ActorRowsPart {
+            loss: loss.detach(),
+            log_prob_sum: pi.log_prob.detach().sum(None),
+            grads,
+        }
+    }
+}
+
+/// The elementwise sum of same-shaped tensors (at least one).
+fn sum<'a>(tensors: impl Iterator<Item = &'a Tensor>) -> Tensor {
+    Tensor::stack(&tensors.collect::<Vec<_>>(), 0).sum_dim_intlist(0, false, None)
 }
 
 /// Spec 5.3 "Critic" step 2: `num_min_qs` distinct members drawn uniformly from

@@ -542,3 +542,29 @@ fn agent_and_replay_are_send() {
     assert_send::<rfcl_learner::Replay>();
     assert_send::<Batch>();
 }
+
+/// Stepping an ensemble's optimiser slice by slice (as member threads do) is one Adam step: with
+/// a constant gradient g, m̂ = g and v̂ = g² at every step, so each step moves a parameter by
+/// −lr · g / (|g| + ε) ≈ −lr · sign(g), by hand.
+#[test]
+fn adam_slices_take_the_whole_step() {
+    let mut vs = nn::VarStore::new(tch::Device::Cpu);
+    vs.set_kind(Kind::Double);
+    let w = vs
+        .root()
+        .var_copy("w", &tensor(2, 2, &[1.0, 2.0, 3.0, 4.0]));
+    let mut adam = Adam::new(&vs, 0.1, 0.9, 0.999, 1e-8);
+    let grad = tensor(2, 2, &[0.5, -2.0, 4.0, -0.25]);
+    for _ in 0..2 {
+        let step = adam.begin_step();
+        // Member 1 first: the slices are independent.
+        for member in [1, 0] {
+            adam.slice(member, 1)
+                .step(step, vec![grad.narrow(0, member, 1).copy()]);
+        }
+    }
+    assert_eq!(adam.step_count(), 2);
+    for (got, want) in values(&w).iter().zip([0.8, 2.2, 2.8, 4.2]) {
+        assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+    }
+}

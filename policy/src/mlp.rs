@@ -88,6 +88,13 @@ impl Dense {
     fn forward(&self, x: &Tensor, precision: MatmulPrecision) -> Tensor {
         affine(x, &self.w, &self.b, precision)
     }
+
+    fn shallow_clone(&self) -> Self {
+        Self {
+            w: self.w.shallow_clone(),
+            b: self.b.shallow_clone(),
+        }
+    }
 }
 
 /// A reparameterised sample of the tanh-squashed Gaussian policy.
@@ -159,6 +166,19 @@ impl Actor {
             log_std_min: net.log_std_min,
             log_std_max: net.log_std_max,
             precision,
+        }
+    }
+
+    /// The same actor on the same parameter tensors (no copy): a handle that another thread can
+    /// own (tensors are `Send`, not `Sync`).
+    pub fn shallow_clone(&self) -> Self {
+        Self {
+            trunk: self.trunk.iter().map(Dense::shallow_clone).collect(),
+            mean: self.mean.shallow_clone(),
+            log_std: self.log_std.shallow_clone(),
+            log_std_min: self.log_std_min,
+            log_std_max: self.log_std_max,
+            precision: self.precision,
         }
     }
 
