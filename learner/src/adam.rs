@@ -8,12 +8,10 @@ use tch::{nn, Tensor};
 
 #[derive(Debug)]
 pub struct Adam {
-    /// (name, parameter), sorted by name.
-    params: Vec<(String, Tensor)>,
-    exp_avg: Vec<Tensor>,
-    exp_avg_sq: Vec<Tensor>,
-    /// Scratch for the denominator, one per parameter.
-    scratch: Vec<Tensor>,
+    /// The parameters' names, sorted; `tensors` holds them and their state in this order.
+    names: Vec<String>,
+    /// Every parameter and its state: the slice that [`step`](Self::step) steps.
+    tensors: AdamSlice,
     step: i64,
     lr: f64,
     beta1: f64,
@@ -24,14 +22,18 @@ pub struct Adam {
 impl Adam {
     /// Adam over every trainable variable of `vs`.
     pub fn new(vs: &nn::VarStore, lr: f64, beta1: f64, beta2: f64, eps: f64) -> Self {
-        let mut params: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
-        params.sort_by(|a, b| a.0.cmp(&b.0));
-        let zeros = |p: &(String, Tensor)| p.1.zeros_like().detach();
+        let mut named: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+        named.sort_by(|a, b| a.0.cmp(&b.0));
+        let (names, params): (Vec<String>, Vec<Tensor>) = named.into_iter().unzip();
+        let zeros = || params.iter().map(|p| p.zeros_like().detach()).collect();
         Self {
-            exp_avg: params.iter().map(zeros).collect(),
-            exp_avg_sq: params.iter().map(zeros).collect(),
-            scratch: params.iter().map(zeros).collect(),
-            params,
+            names,
+            tensors: AdamSlice {
+                exp_avg: zeros(),
+                exp_avg_sq: zeros(),
+                scratch: zeros(),
+                params,
+            },
             step: 0,
             lr,
             beta1,
@@ -42,7 +44,7 @@ impl Adam {
 
     /// The parameters, in the order [`step`](Self::step) expects their gradients.
     pub fn params(&self) -> Vec<&Tensor> {
-        self.params.iter().map(|(_, p)| p).collect()
+        self.tensors.params.iter().collect()
     }
 
     /// Gradients of `loss` w.r.t. the parameters only (autograd computes nothing for other
@@ -55,17 +57,7 @@ impl Adam {
     /// One Adam step with the given gradients (consumed as scratch).
     pub fn step(&mut self, grads: Vec<Tensor>) {
         let step = self.begin_step();
-        tch::no_grad(|| {
-            for (i, grad) in grads.into_iter().enumerate() {
-                step.apply(
-                    &self.params[i].1,
-                    &mut self.exp_avg[i],
-                    &mut self.exp_avg_sq[i],
-                    &mut self.scratch[i],
-                    grad,
-                );
-            }
-        });
+        self.tensors.step(step, grads);
     }
 
     /// Counts a step and returns its scalars, for [`AdamSlice::step`] on every slice of the
@@ -87,17 +79,17 @@ impl Adam {
     /// optimiser state, as views of them: a critic ensemble's members, whose disjoint slices
     /// threads can step at once. Every parameter must have that first dimension.
     pub fn slice(&self, start: i64, len: i64) -> AdamSlice {
-        let narrow =
-            |ts: &[Tensor]| -> Vec<Tensor> { ts.iter().map(|t| t.narrow(0, start, len)).collect() };
+        let narrow = |ts: &[Tensor]| -> Vec<Tensor> {
+            ts.iter()
+                .map(|t| t.detach().narrow(0, start, len))
+                .collect()
+        };
+        let all = &self.tensors;
         AdamSlice {
-            params: self
-                .params
-                .iter()
-                .map(|(_, p)| p.detach().narrow(0, start, len))
-                .collect(),
-            exp_avg: narrow(&self.exp_avg),
-            exp_avg_sq: narrow(&self.exp_avg_sq),
-            scratch: narrow(&self.scratch),
+            params: narrow(&all.params),
+            exp_avg: narrow(&all.exp_avg),
+            exp_avg_sq: narrow(&all.exp_avg_sq),
+            scratch: narrow(&all.scratch),
         }
     }
 
@@ -110,11 +102,14 @@ impl Adam {
     /// for checkpoints.
     pub fn state(&self) -> Vec<(String, Tensor)> {
         let mut state = vec![("step".to_string(), Tensor::from(self.step))];
-        for (i, (name, _)) in self.params.iter().enumerate() {
-            state.push((format!("exp_avg.{name}"), self.exp_avg[i].shallow_clone()));
+        for (i, name) in self.names.iter().enumerate() {
+            state.push((
+                format!("exp_avg.{name}"),
+                self.tensors.exp_avg[i].shallow_clone(),
+            ));
             state.push((
                 format!("exp_avg_sq.{name}"),
-                self.exp_avg_sq[i].shallow_clone(),
+                self.tensors.exp_avg_sq[i].shallow_clone(),
             ));
         }
         state
@@ -133,9 +128,10 @@ impl Adam {
         };
         self.step = find("step")?.int64_value(&[]);
         tch::no_grad(|| -> Result<(), tch::TchError> {
-            for (i, (name, _)) in self.params.iter().enumerate() {
-                self.exp_avg[i].f_copy_(find(&format!("exp_avg.{name}"))?)?;
-                self.exp_avg_sq[i].f_copy_(find(&format!("exp_avg_sq.{name}"))?)?;
+            for (i, name) in self.names.iter().enumerate() {
+                let t = &mut self.tensors;
+                t.exp_avg[i].f_copy_(find(&format!("exp_avg.{name}"))?)?;
+                t.exp_avg_sq[i].f_copy_(find(&format!("exp_avg_sq.{name}"))?)?;
             }
             Ok(())
         })
@@ -175,12 +171,15 @@ impl AdamStep {
     }
 }
 
-/// A slice of an [`Adam`]'s parameters and state (see [`Adam::slice`]), sharing their memory.
+/// Parameters and their Adam state, one entry per parameter in the optimiser's order: all of an
+/// [`Adam`]'s, or a slice of them sharing their memory (see [`Adam::slice`]).
 #[derive(Debug)]
 pub struct AdamSlice {
     params: Vec<Tensor>,
+    /// First and second moments.
     exp_avg: Vec<Tensor>,
     exp_avg_sq: Vec<Tensor>,
+    /// Scratch for the denominator.
     scratch: Vec<Tensor>,
 }
 

@@ -113,10 +113,10 @@ impl MemberThreads {
             })
             .collect();
         let parts = run_on_threads(jobs, self.threads, CriticShardJob::run);
-        let loss = Tensor::stack(&parts.iter().map(|p| &p.loss).collect::<Vec<_>>(), 0).sum(None);
-        let q_sum = Tensor::stack(&parts.iter().map(|p| &p.q_sum).collect::<Vec<_>>(), 0).sum(None);
-        let q = q_sum / (members * minibatch.rows()) as f64;
-        CriticStep { loss, q }
+        CriticStep {
+            loss: sum(parts.iter().map(|p| &p.loss)),
+            q: sum(parts.iter().map(|p| &p.q_sum)) / (members * minibatch.rows()) as f64,
+        }
     }
 
     /// A per-row computation on `rows` rows, such as the critic's regression target or the
@@ -138,6 +138,11 @@ impl MemberThreads {
             .collect();
         run_on_threads(jobs, self.threads, run)
     }
+}
+
+/// The elementwise sum of same-shaped tensors (at least one): joins the threads' parts.
+pub fn sum<'a>(tensors: impl Iterator<Item = &'a Tensor>) -> Tensor {
+    Tensor::stack(&tensors.collect::<Vec<_>>(), 0).sum_dim_intlist(0, false, None)
 }
 
 /// `shards` contiguous (start, len) member ranges covering 0..members, sizes differing by at most

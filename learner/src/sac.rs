@@ -11,7 +11,7 @@
 use crate::adam::Adam;
 use crate::batch::Batch;
 use crate::error::{LearnerError, Result};
-use crate::members::MemberThreads;
+use crate::members::{sum, MemberThreads};
 use crate::nets::{standard_normal, Actor, CriticEnsemble};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -291,8 +291,8 @@ impl Sac {
     }
 
     /// The regression target y `[B]` of spec 5.3 "Critic" (no autograd history), for given target
-    /// members and policy noise at s′.
-    /// With member threads, each thread computes the target of a range of the minibatch's rows.
+    /// members and policy noise at s′. With member threads, each thread computes the target of a
+    /// range of the minibatch's rows.
     pub fn critic_target(&self, minibatch: &Batch, members: &[i64], noise: &Tensor) -> Tensor {
         let target_critic = self.target_critic.select(members);
         let alpha = self.cfg.backup_entropy.then(|| self.alpha());
@@ -535,11 +535,6 @@ impl ActorRows {
             grads,
         }
     }
-}
-
-/// The elementwise sum of same-shaped tensors (at least one).
-fn sum<'a>(tensors: impl Iterator<Item = &'a Tensor>) -> Tensor {
-    Tensor::stack(&tensors.collect::<Vec<_>>(), 0).sum_dim_intlist(0, false, None)
 }
 
 /// Spec 5.3 "Critic" step 2: `num_min_qs` distinct members drawn uniformly from
