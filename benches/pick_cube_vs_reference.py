@@ -2,11 +2,15 @@
 machine (2 cores, CPU only, 5 motion-planned demos, seed 1, its ManiSkill3 CPU config).
 
     .venv/bin/python benches/pick_cube_vs_reference.py RUN_DIR [--state STATE.json] [--svg OUT.svg]
+        [--also LABEL=SUMMARY.json ...]
 
 RUN_DIR is an `rfcl train` run of configs/maniskill3/pick_cube.yml with `sac.eval_freq=20000`
 (its summary.json and metrics.csv); STATE.json is the run's dashboard /api/state saved near its end,
 whose progress history gives the first train success (the summary keeps only the last rate).
-Prints the Markdown tables of benches/RESULTS.md and draws both eval curves on one SVG.
+`--also` adds another rfcl run of the same preset (another seed) by its summary.json alone: its
+eval column and curve, and its stage-1 end.
+Prints the Markdown tables of benches/RESULTS.md (the per-demo stage-1 table too) and draws every
+eval curve on one SVG.
 """
 
 import argparse
@@ -57,12 +61,47 @@ def wall_at(metrics, env_steps):
     return None
 
 
+def stage_1_by_demo(summary):
+    """Per demo, from the summary's frontier history (`[env steps, t_i]` after each move): when the
+    frontier first moved, reached t_i = 0 and was solved, its longest wait and the t_i it waited at
+    (the grasp, in PickCube), and its share of the stage-1 episodes."""
+    rows = []
+    for demo in summary["demos"]:
+        d = demo["difficulty"]
+        moves = d["frontier"]
+        waits = [(b[0] - a[0], a[1]) for a, b in zip(moves, moves[1:])]
+        wait, at = max(waits) if waits else (None, None)
+        at_zero = next((steps for steps, t in moves if t == 0), None)
+        rows.append(
+            (
+                demo["episode_id"],
+                demo["states"],
+                moves[0][0] if moves else None,
+                at_zero,
+                d["solved_env_steps"],
+                wait,
+                at,
+                d["episode_share"],
+                d["frontier_success_rate"],
+            )
+        )
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--state", type=Path)
     parser.add_argument("--svg", type=Path, default=Path("benches/pick_cube_vs_reference.svg"))
+    parser.add_argument("--also", action="append", default=[], metavar="LABEL=SUMMARY.json")
+    parser.add_argument("--label", default="rfcl", help="this run's name in the tables and plot")
     args = parser.parse_args()
+    others = []
+    for also in args.also:
+        label, sep, path = also.partition("=")
+        if not sep:
+            parser.error(f"--also {also!r}: expected LABEL=SUMMARY.json")
+        others.append((label, json.loads(Path(path).read_text())))
     summary = json.loads((args.run_dir / "summary.json").read_text())
     with open(args.run_dir / "metrics.csv") as f:
         metrics = list(csv.DictReader(f))
@@ -99,15 +138,43 @@ def main():
         "eval success ≥ 50 %": milestone(0.5),
         "eval success ≥ 90 %": milestone(0.9),
     }
-    print("| | official JAX implementation | rfcl |")
+    print(f"| | official JAX implementation | {args.label} |")
     print("|---|---|---|")
     for key, value in REFERENCE.items():
         print(f"| {key} | {value} | {ours[key]} |")
+    for label, other in others:
+        end = other.get("stage_1_env_steps")
+        print(f"\n{label}: stage 1 ends at {steps(end) if end else '-'}")
 
-    print("\n| env steps | official: eval success | rfcl: success at end (success once) | rfcl wall time |")
-    print("|---|---|---|---|")
-    grid = sorted(set(REFERENCE_EVALS) | {round(e["env_steps"], -4) for e in evals})
+    print(
+        "\n| demo (episode) | states | first frontier move | t_i = 0 | solved "
+        "| longest wait (at t_i) | share of stage-1 episodes | frontier success |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for ep, states, first, zero, solved, wait, at, share, success in stage_1_by_demo(summary):
+        print(
+            f"| {ep} | {states} | {steps(first)} | {steps(zero)} | {steps(solved)} "
+            f"| {steps(wait)} ({at}) | {share:.2f} | {success:.2f} |"
+        )
+
+    extra_heads = "".join(f" {label}: success at end (once) |" for label, _ in others)
+    print(
+        f"\n| env steps | official: eval success | {args.label}: success at end (success once) "
+        f"| {args.label} wall time |{extra_heads}"
+    )
+    print("|---|---|---|---|" + "---|" * len(others))
+    grid = sorted(
+        set(REFERENCE_EVALS)
+        | {round(e["env_steps"], -4) for run in [summary] + [o for _, o in others] for e in run["evals"]}
+    )
     by_step = {round(e["env_steps"], -4): e for e in evals}
+    others_by_step = [{round(e["env_steps"], -4): e for e in o["evals"]} for _, o in others]
+
+    def success_text(e, x):
+        if not e:
+            return "-"
+        text = f"{e['success_at_end']:.2f} ({e['success_once']:.2f})"
+        return text + (f" at {e['env_steps']:,}" if e["env_steps"] != x else "")
     for x in grid:
         ref = REFERENCE_EVALS.get(x)
         if x == 260_000:
@@ -116,26 +183,32 @@ def main():
             ref_text = f"{ref:.2f}" if ref is not None else "-"
 
         e = by_step.get(x)
-        ours_text = f"{e['success_at_end']:.2f} ({e['success_once']:.2f})" if e else "-"
-        if e and e["env_steps"] != x:
-            ours_text += f" at {e['env_steps']:,}"
-        print(f"| {x:,} | {ref_text} | {ours_text} | {minutes(e['wall_s']) if e else '-'} |")
+        extra = "".join(f" {success_text(o.get(x), x)} |" for o in others_by_step)
+        print(
+            f"| {x:,} | {ref_text} | {success_text(e, x)} "
+            f"| {minutes(e['wall_s']) if e else '-'} |{extra}"
+        )
 
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
     ref_x = sorted(REFERENCE_EVALS)
     ax.plot(ref_x, [REFERENCE_EVALS[x] for x in ref_x], "o-", color="tab:gray",
             label="official JAX implementation")
     ax.vlines(260_000, *REFERENCE_260K_RANGE, color="tab:gray")
-    ax.plot([e["env_steps"] for e in evals], [e["success_at_end"] for e in evals], "o-",
-            color="tab:blue", label="rfcl (success at end)")
     ax.axvline(REFERENCE_STAGE_1, color="tab:gray", linestyle=":", label="stage 1 ends (official)")
-    if stage_1:
-        ax.axvline(stage_1, color="tab:blue", linestyle=":", label="stage 1 ends (rfcl)")
+    colors = iter(["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"])
+    for label, run in [(args.label, summary)] + others:
+        color = next(colors)
+        run_evals = run["evals"]
+        ax.plot([e["env_steps"] for e in run_evals], [e["success_at_end"] for e in run_evals],
+                "o-", color=color, label=f"{label} (success at end)")
+        if run.get("stage_1_env_steps"):
+            ax.axvline(run["stage_1_env_steps"], color=color, linestyle=":",
+                       label=f"stage 1 ends ({label})")
     ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:.0f}k"))
     ax.set_xlabel("env steps")
     ax.set_ylabel("eval success (20 episodes)")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title("PickCube-v1, 5 demos, seed 1, full preset, 2-core CPU")
+    ax.set_title("PickCube-v1, 5 demos, full preset, 2-core CPU")
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     fig.savefig(args.svg)
