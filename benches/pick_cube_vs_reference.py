@@ -61,6 +61,16 @@ def wall_at(metrics, env_steps):
     return None
 
 
+def wilson(successes, n, z=1.96):
+    """The 95 % Wilson score interval of a success rate of `successes` in `n` episodes."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = successes / n
+    center = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5
+    return (max(0.0, center - half), min(1.0, center + half))
+
+
 def stage_1_by_demo(summary):
     """Per demo, from the summary's frontier history (`[env steps, t_i]` after each move): when the
     frontier first moved, reached t_i = 0 and was solved, its longest wait and the t_i it waited at
@@ -157,7 +167,9 @@ def main():
             f"| {steps(wait)} ({at}) | {share:.2f} | {success:.2f} |"
         )
 
-    extra_heads = "".join(f" {label}: success at end (once) |" for label, _ in others)
+    extra_heads = "".join(
+        f" {label}: success at end (once) [95 % interval] |" for label, _ in others
+    )
     print(
         f"\n| env steps | official: eval success | {args.label}: success at end (success once) "
         f"| {args.label} wall time |{extra_heads}"
@@ -173,7 +185,8 @@ def main():
     def success_text(e, x):
         if not e:
             return "-"
-        text = f"{e['success_at_end']:.2f} ({e['success_once']:.2f})"
+        low, high = wilson(round(e["success_at_end"] * e["episodes"]), e["episodes"])
+        text = f"{e['success_at_end']:.2f} ({e['success_once']:.2f}) [{low:.2f}-{high:.2f}]"
         return text + (f" at {e['env_steps']:,}" if e["env_steps"] != x else "")
     for x in grid:
         ref = REFERENCE_EVALS.get(x)
