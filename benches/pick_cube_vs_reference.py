@@ -171,7 +171,7 @@ def main():
         f" {label}: success at end (once) [95 % interval] |" for label, _ in others
     )
     print(
-        f"\n| env steps | official: eval success | {args.label}: success at end (success once) "
+        f"\n| env steps | official: eval success | {args.label}: success at end (success once) [95 % interval] "
         f"| {args.label} wall time |{extra_heads}"
     )
     print("|---|---|---|---|" + "---|" * len(others))
