@@ -208,9 +208,9 @@ def main():
             label="official JAX implementation")
     ax.vlines(260_000, *REFERENCE_260K_RANGE, color="tab:gray")
     ax.axvline(REFERENCE_STAGE_1, color="tab:gray", linestyle=":", label="stage 1 ends (official)")
-    colors = iter(["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"])
-    for label, run in [(args.label, summary)] + others:
-        color = next(colors)
+    # Matplotlib's colour cycle (C0 is tab:blue, C1 tab:orange, ...), one colour per run.
+    for i, (label, run) in enumerate([(args.label, summary)] + others):
+        color = f"C{i}"
         run_evals = run["evals"]
         ax.plot([e["env_steps"] for e in run_evals], [e["success_at_end"] for e in run_evals],
                 "o-", color=color, label=f"{label} (success at end)")
