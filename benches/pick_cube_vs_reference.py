@@ -61,6 +61,18 @@ def wall_at(metrics, env_steps):
     return None
 
 
+def on_grid(evals):
+    """Each eval under its nearest multiple of 10,000 env steps; where several share one, the
+    eval nearest to it (a resumed run's eval actor adds an eval at once, a few hundred or thousand
+    env steps after the one due on the grid)."""
+    out = {}
+    for e in evals:
+        x = round(e["env_steps"], -4)
+        if x not in out or abs(e["env_steps"] - x) < abs(out[x]["env_steps"] - x):
+            out[x] = e
+    return out
+
+
 def wilson(successes, n, z=1.96):
     """The 95 % Wilson score interval of a success rate of `successes` in `n` episodes."""
     if n == 0:
@@ -179,8 +191,8 @@ def main():
         set(REFERENCE_EVALS)
         | {round(e["env_steps"], -4) for run in [summary] + [o for _, o in others] for e in run["evals"]}
     )
-    by_step = {round(e["env_steps"], -4): e for e in evals}
-    others_by_step = [{round(e["env_steps"], -4): e for e in o["evals"]} for _, o in others]
+    by_step = on_grid(evals)
+    others_by_step = [on_grid(o["evals"]) for _, o in others]
 
     def success_text(e, x):
         if not e:
