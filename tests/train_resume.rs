@@ -1,7 +1,7 @@
 //! A run stopped with SIGINT (Ctrl-C) stops every child cleanly, exits 130 and writes its summary;
 //! `rfcl train --resume RUN_DIR` continues it (curriculum snapshot, learner checkpoint) to its bar,
-//! counting wall time and evals over both sessions. The bar is the config's 0.9, as in
-//! train_pointmaze.rs.
+//! counting wall time and evals over both sessions, with the first session's `--learner-threads`.
+//! The bar is the config's 0.9, as in train_pointmaze.rs.
 mod train_support;
 
 use std::time::Duration;
@@ -14,9 +14,14 @@ const BAR: f64 = 0.9;
 #[test]
 fn sigint_then_resume_runs_to_completion() {
     let dir = tempfile::tempdir().unwrap();
+    // Not the default thread count on a 2-core machine (1), to see that `--resume` keeps it.
     let mut first = start_test_run(
         dir.path(),
-        &[format!("service.stop_at_eval_success={BAR}")],
+        &[
+            format!("service.stop_at_eval_success={BAR}"),
+            "--learner-threads".into(),
+            "2".into(),
+        ],
         "first.stderr",
     );
     let run_dir = first.run_dir.clone();
@@ -79,6 +84,15 @@ fn sigint_then_resume_runs_to_completion() {
     let summary = resumed.summary();
     assert_reached(&summary, BAR);
     assert_eq!(summary["sessions"], 2);
+    let learner_log = std::fs::read_to_string(run_dir.join("logs/learner.log")).unwrap();
+    let sessions_on_2_threads = learner_log
+        .lines()
+        .filter(|l| l.contains("SAC updates on the CPU threads=2 "))
+        .count();
+    assert_eq!(
+        sessions_on_2_threads, 2,
+        "--learner-threads 2 of the first session kept by --resume:\n{learner_log}"
+    );
     assert!(summary["env_steps"].as_u64().unwrap() > steps_before);
     assert!(summary["wall_s"].as_f64().unwrap() > stopped["wall_s"].as_f64().unwrap());
     // The first session's evals are kept, with their times.

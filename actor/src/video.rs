@@ -94,7 +94,7 @@ impl Recorder {
     /// it).
     pub fn step(&mut self, last: bool) -> bool {
         self.steps += 1;
-        last || self.steps % STEPS_PER_FRAME == 0
+        last || self.steps.is_multiple_of(STEPS_PER_FRAME)
     }
 
     /// Adds the frame of the step [`Recorder::step`] asked for. Past [`MAX_FRAMES`] the newest

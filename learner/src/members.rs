@@ -24,17 +24,14 @@ use crate::batch::Batch;
 use crate::nets::CriticEnsemble;
 use crate::sac::{mean_squared_td_error, polyak_update, CriticStep};
 
-/// Shards per member thread (see [`MemberThreads::per_thread`]). One: on the 2-core machine with a
-/// MetaWorld run's actors beside the learner, two shards per thread (finer work, balanced by the
-/// queue) were no faster (54-62 critic updates/s; one shard per thread 54-70 in the same run).
-pub const SHARDS_PER_THREAD: usize = 1;
-
 /// How an agent spreads its updates: on how many threads (1 = everything on the calling thread),
-/// with the critic ensemble's members split into how many contiguous shards.
+/// with the critic ensemble's members split into how many contiguous shards and the minibatch's
+/// rows into how many ranges.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MemberThreads {
     threads: usize,
     shards: usize,
+    row_ranges: usize,
 }
 
 impl MemberThreads {
@@ -42,19 +39,22 @@ impl MemberThreads {
     pub const SERIAL: Self = Self {
         threads: 1,
         shards: 1,
+        row_ranges: 1,
     };
 
-    /// `threads` threads with [`SHARDS_PER_THREAD`] shards each.
-    pub fn per_thread(threads: usize, members: usize, device: Device) -> Self {
-        Self::new(
-            threads,
-            threads.saturating_mul(SHARDS_PER_THREAD),
-            members,
-            device,
-        )
+    /// `threads` threads with `per_thread` pieces of work each (`learner.shards_per_thread`):
+    /// `threads · per_thread` member shards (at most one per member) and as many row ranges.
+    pub fn per_thread(threads: usize, per_thread: usize, members: usize, device: Device) -> Self {
+        let pieces = threads.saturating_mul(per_thread.max(1));
+        let mut split = Self::new(threads, pieces, members, device);
+        if split.is_parallel() {
+            split.row_ranges = pieces.max(split.threads);
+        }
+        split
     }
 
-    /// `threads` clamped to 1..=members (1 off the CPU), `shards` to threads..=members.
+    /// `threads` clamped to 1..=members (1 off the CPU), `shards` to threads..=members; one row
+    /// range per thread.
     pub fn new(threads: usize, shards: usize, members: usize, device: Device) -> Self {
         let threads = match device {
             Device::Cpu => threads.clamp(1, members),
@@ -63,6 +63,7 @@ impl MemberThreads {
         Self {
             threads,
             shards: shards.clamp(threads, members),
+            row_ranges: threads,
         }
     }
 
@@ -72,6 +73,10 @@ impl MemberThreads {
 
     pub fn shards(&self) -> usize {
         self.shards
+    }
+
+    pub fn row_ranges(&self) -> usize {
+        self.row_ranges
     }
 
     /// Whether updates run on several threads (otherwise: the batched computation).
@@ -120,7 +125,8 @@ impl MemberThreads {
     }
 
     /// A per-row computation on `rows` rows, such as the critic's regression target or the
-    /// actor's loss and gradients: the rows split into one contiguous range per thread,
+    /// actor's loss and gradients: the rows split into contiguous ranges (one per thread unless
+    /// [`per_thread`](Self::per_thread) asked for more),
     /// `job(start, len)` prepares each range's work (on the calling thread), the threads `run`
     /// them; the parts in row order. Not parallel: one job on all rows, run here.
     pub fn by_rows<J: Send, T: Send>(
@@ -132,7 +138,7 @@ impl MemberThreads {
         if !self.is_parallel() {
             return vec![run(job(0, rows))];
         }
-        let jobs = shard_ranges(rows, self.threads)
+        let jobs = shard_ranges(rows, self.row_ranges)
             .into_iter()
             .map(|(start, len)| job(start, len))
             .collect();
@@ -259,14 +265,21 @@ mod tests {
 
     #[test]
     fn threads_and_shards_are_clamped_to_the_members() {
-        let cpu = MemberThreads::per_thread(4, 10, Device::Cpu);
-        assert_eq!((cpu.threads(), cpu.shards()), (4, 4 * SHARDS_PER_THREAD));
+        let cpu = MemberThreads::per_thread(4, 1, 10, Device::Cpu);
+        assert_eq!((cpu.threads(), cpu.shards(), cpu.row_ranges()), (4, 4, 4));
+        let finer = MemberThreads::per_thread(2, 5, 10, Device::Cpu);
+        assert_eq!(
+            (finer.threads(), finer.shards(), finer.row_ranges()),
+            (2, 10, 10)
+        );
+        let capped = MemberThreads::per_thread(2, 8, 10, Device::Cpu);
+        assert_eq!((capped.shards(), capped.row_ranges()), (10, 16));
         let few = MemberThreads::new(8, 3, 2, Device::Cpu);
-        assert_eq!((few.threads(), few.shards()), (2, 2));
-        let none = MemberThreads::per_thread(0, 10, Device::Cpu);
+        assert_eq!((few.threads(), few.shards(), few.row_ranges()), (2, 2, 2));
+        let none = MemberThreads::per_thread(0, 3, 10, Device::Cpu);
         assert_eq!(none, MemberThreads::SERIAL);
         assert!(!none.is_parallel());
-        let cuda = MemberThreads::per_thread(4, 10, Device::Cuda(0));
+        let cuda = MemberThreads::per_thread(4, 2, 10, Device::Cuda(0));
         assert_eq!(cuda.threads(), 1);
         assert!(!cuda.is_parallel());
     }

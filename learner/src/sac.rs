@@ -382,12 +382,54 @@ impl Sac {
         tch::no_grad(|| self.actor.deterministic(obs))
     }
 
-    /// Runs the critic ensemble's members on `threads` threads (at most one per member), with
-    /// [`crate::members::SHARDS_PER_THREAD`] shards each: same losses, same gradients up to float
-    /// summation order, same RNG draws (see [`crate::members`]). CUDA ignores it.
-    pub fn set_member_threads(&mut self, threads: usize) {
+    /// Docs/ALGORITHM.md 4.1 with `train.load_actor` or `train.load_critic` false: the actor, or
+    /// the critic ensemble with its target and the temperature, starts stage 2 from a fresh
+    /// initialisation (the one [`Sac::with_kind`] gives for `seed` and `net`) with a fresh Adam
+    /// state; the other part and the RNG are kept.
+    pub fn reinitialise(
+        &mut self,
+        actor: bool,
+        critic: bool,
+        net: &NetworkConfig,
+        seed: u64,
+    ) -> Result<()> {
+        if !actor && !critic {
+            return Ok(());
+        }
+        let fresh = Self::with_kind(
+            self.obs_dim as usize,
+            self.action_dim as usize,
+            &self.cfg,
+            net,
+            seed,
+            self.kind,
+        )?;
+        let cfg = &self.cfg;
+        let adam = |vs: &nn::VarStore, lr: f64| {
+            Adam::new(vs, lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps)
+        };
+        if actor {
+            self.actor_vs.copy(&fresh.actor_vs)?;
+            self.actor_opt = adam(&self.actor_vs, cfg.actor_lr);
+        }
+        if critic {
+            // In place: the Polyak pairs and the member shards keep pointing at these tensors.
+            self.critic_vs.copy(&fresh.critic_vs)?;
+            self.target_vs.copy(&fresh.critic_vs)?;
+            self.critic_opt = adam(&self.critic_vs, cfg.critic_lr);
+            self.temp_vs.copy(&fresh.temp_vs)?;
+            self.temp_opt = adam(&self.temp_vs, cfg.temp_lr);
+        }
+        Ok(())
+    }
+
+    /// Runs the updates on `threads` threads (at most one per critic member), with `per_thread`
+    /// pieces of work each (`learner.shards_per_thread`, [`MemberThreads::per_thread`]): same
+    /// losses, same gradients up to float summation order, same RNG draws (see
+    /// [`crate::members`]). CUDA ignores it.
+    pub fn set_member_threads(&mut self, threads: usize, per_thread: usize) {
         let members = self.critic.members() as usize;
-        self.member_threads = MemberThreads::per_thread(threads, members, self.device);
+        self.member_threads = MemberThreads::per_thread(threads, per_thread, members, self.device);
     }
 
     /// [`Sac::set_member_threads`] with an explicit shard count (clamped to 1..=members; at

@@ -388,12 +388,21 @@ fn member_threads_give_the_batched_updates() {
     let expected: Vec<_> = (0..3)
         .map(|_| reference.train_iteration(&batch).unwrap())
         .collect();
-    // (threads, shards): one shard per thread, the default shards per thread, more shards than
-    // threads, and more threads than members.
-    for (threads, shards) in [(2, 2), (2, 0), (3, 3), (2, 3), (4, 4), (9, 9)] {
+    // (threads, shards): one shard per thread, more shards than threads, and more threads than
+    // members; shards 0: `set_member_threads` with 1 and with 3 pieces of work per thread (then
+    // also 6 ranges of the minibatch's 6 rows).
+    for (threads, shards, per_thread) in [
+        (2, 2, 0),
+        (2, 0, 1),
+        (2, 0, 3),
+        (3, 3, 0),
+        (2, 3, 0),
+        (4, 4, 0),
+        (9, 9, 0),
+    ] {
         let mut sharded = agent(&cfg, 21);
         if shards == 0 {
-            sharded.set_member_threads(threads);
+            sharded.set_member_threads(threads, per_thread);
         } else {
             sharded.set_member_parallelism(threads, shards);
         }
@@ -567,4 +576,62 @@ fn adam_slices_take_the_whole_step() {
     for (got, want) in values(&w).iter().zip([0.8, 2.2, 2.8, 4.2]) {
         assert!((got - want).abs() < 1e-6, "{got} vs {want}");
     }
+}
+
+/// Every parameter of `sac` under `prefix` (see [`all_params`]).
+fn params_under(sac: &Sac, prefix: &str) -> HashMap<String, Vec<f64>> {
+    all_params(sac)
+        .into_iter()
+        .filter(|(k, _)| k.starts_with(prefix))
+        .collect()
+}
+
+#[test]
+fn reinitialise_starts_only_the_chosen_parts_afresh() {
+    let (cfg, net) = small_config();
+    let mut sac = agent(&cfg, 8);
+    let (batch, _) = minibatch(6, 48);
+    let step = sac.update_actor(&batch.obs);
+    sac.update_temperature(&step.entropy);
+    let fresh = Sac::with_kind(OBS, ACT, &cfg, &net, 99, Kind::Double).unwrap();
+    let steps = |sac: &Sac| sac.optimizers().map(|(_, opt)| opt.step_count());
+    assert_eq!(steps(&sac), [1, 1, 1]);
+
+    // load_actor false: the actor is the fresh one, the critics and α are untouched.
+    let trained = all_params(&sac);
+    sac.reinitialise(true, false, &net, 99).unwrap();
+    let now = all_params(&sac);
+    assert_eq!(params_under(&sac, "actor/"), params_under(&fresh, "actor/"));
+    assert!(changed(&trained, &now, "actor/"));
+    for part in ["critic/", "target/", "temp/"] {
+        assert!(!changed(&trained, &now, part), "{part}");
+    }
+    assert_eq!(steps(&sac), [0, 1, 1]);
+
+    // load_critic false: critics, target (a copy of them) and α are the fresh ones.
+    sac.reinitialise(false, true, &net, 99).unwrap();
+    for part in ["actor/", "critic/", "temp/"] {
+        assert_eq!(
+            params_under(&sac, part),
+            params_under(&fresh, part),
+            "{part}"
+        );
+    }
+    let strip = |m: HashMap<String, Vec<f64>>, prefix: &str| -> HashMap<String, Vec<f64>> {
+        m.into_iter()
+            .map(|(k, v)| (k[prefix.len()..].to_string(), v))
+            .collect()
+    };
+    assert_eq!(
+        strip(params_under(&sac, "target/"), "target/"),
+        strip(params_under(&fresh, "critic/"), "critic/")
+    );
+    assert_eq!(steps(&sac), [0, 0, 0]);
+
+    // The Polyak pairs still join the (reinitialised) target to the critics.
+    let before = all_params(&sac);
+    sac.update_critic(&batch);
+    let after = all_params(&sac);
+    assert!(changed(&before, &after, "critic/") && changed(&before, &after, "target/"));
+    assert_eq!(steps(&sac), [0, 1, 0]);
 }

@@ -160,3 +160,53 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
     );
     assert!(run_dir.join("policy.safetensors").exists());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_actor() {
+    let dir = tempfile::tempdir().unwrap();
+    let run_dir = dir.path().join("run");
+    let demos = write_demos(dir.path());
+    let config = write_config(dir.path(), W, 100_000, "");
+    let text = std::fs::read_to_string(&config).unwrap().replace(
+        "  shuffle_demos: false\n",
+        "  shuffle_demos: false\n  load_actor: false\n  load_critic: false\n",
+    );
+    std::fs::write(&config, text).unwrap();
+    let curriculum = Curriculum::start(&config, &demos, &run_dir);
+    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
+    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    let mut learner = Learner::start(&args);
+    let mut client = learner.client().await;
+
+    push(&mut client, batches(0..40, 8, 0)).await.unwrap();
+    let h = wait_health(&mut client, Duration::from_secs(60), |h| {
+        h.env_steps == 40 && h.updates == G * 8
+    })
+    .await;
+    let stage_1_version = h.policy_version;
+    curriculum.drive_to_stage_2().await;
+
+    // The fresh actor is published at the stage change, before any stage-2 update.
+    push(&mut client, batches(40..48, 8, 1)).await.unwrap();
+    let h = wait_health(&mut client, Duration::from_secs(30), |h| h.env_steps == 48).await;
+    assert_eq!(h.updates, G * 8);
+    assert_eq!(h.policy_version, stage_1_version + 1);
+    push(&mut client, batches(48..52, 4, 1)).await.unwrap();
+    wait_health(&mut client, Duration::from_secs(30), |h| h.updates == G * 9).await;
+
+    // Fresh Adam states: the step counts hold stage 2's one iteration only.
+    assert!(learner.sigterm().success());
+    let ckpt = checkpoint::checkpoint_dir(&run_dir);
+    let manifest = checkpoint::read_manifest(&ckpt).unwrap().unwrap();
+    let optimizers = tch::Tensor::read_safetensors(ckpt.join(&manifest.optimizers_file)).unwrap();
+    let step = |name: &str| {
+        optimizers
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, t)| t.int64_value(&[]))
+            .unwrap()
+    };
+    assert_eq!(step("critic/step"), G as i64);
+    assert_eq!(step("actor/step"), G as i64);
+    assert_eq!(step("temperature/step"), G as i64);
+}

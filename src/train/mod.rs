@@ -142,6 +142,12 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
             (requested, run_dir, false)
         }
     };
+    let mut cfg = cfg;
+    if let Some(threads) = args.learner_threads {
+        // Stored in the run's config.yml, so that `--resume` keeps the thread count the run was
+        // started with.
+        cfg.learner.threads = Some(threads);
+    }
     check_runnable(&cfg)?;
     let demos = PathBuf::from(cfg.train.dataset_path.clone().expect("checked"));
     std::fs::create_dir_all(run_dir.join("logs"))
@@ -155,9 +161,9 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
         RunProgress::default()
     };
     progress.begin_session();
-    let learner_threads = cfg.learner.threads_here(args.learner_threads);
+    let learner_threads = cfg.learner.threads_here(None);
     if learner_threads == 0 {
-        bail!("--learner-threads must be at least 1");
+        bail!("learner.threads (--learner-threads) must be at least 1, got 0");
     }
     Ok(Prepared {
         cfg,

@@ -26,6 +26,12 @@ pub fn replay_seed(run_seed: u64) -> u64 {
     run_seed ^ 0x9E37_79B9_7F4A_7C15
 }
 
+/// The seed of the networks that stage 2 starts afresh (`train.load_actor` / `load_critic`
+/// false): not the run seed, whose initialisation the stage-1 networks started from.
+pub fn stage_2_init_seed(run_seed: u64) -> u64 {
+    run_seed ^ 0xD1B5_4A32_D192_ED03
+}
+
 /// K = `env.num_envs · sac.steps_per_env`, env steps per training iteration (spec 5.2).
 pub fn steps_per_iteration(cfg: &RunConfig) -> u64 {
     u64::from(cfg.env.num_envs) * u64::from(cfg.sac.steps_per_env)

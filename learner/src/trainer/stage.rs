@@ -1,5 +1,6 @@
 //! The curriculum's stage changes as the trainer applies them (spec 4): a new stage epoch, and at
 //! the move from the reverse to the forward curriculum the buffers' stage transition.
+use super::setup::stage_2_init_seed;
 use super::{Result, StopReason, Trainer};
 use crate::stages::{Stage, StageAnnouncement};
 
@@ -39,8 +40,28 @@ impl Trainer {
 
     /// Spec 4.2, 4.4: the stage-1 online buffer becomes the offline buffer (demo transitions
     /// dropped), the online buffer is emptied, and the next `sac.num_seed_steps` env steps are
-    /// policy-only; networks, optimiser states and α are kept.
+    /// policy-only; networks, optimiser states and α are kept (spec 4.1), unless
+    /// `train.load_actor` / `train.load_critic` say to start the actor / the critics afresh.
     pub(super) fn begin_stage_2(&mut self) -> Result<()> {
+        let (keep_actor, keep_critic) = (self.cfg.train.load_actor, self.cfg.train.load_critic);
+        if !keep_actor || !keep_critic {
+            self.sac.reinitialise(
+                !keep_actor,
+                !keep_critic,
+                &self.cfg.network,
+                stage_2_init_seed(self.cfg.seed),
+            )?;
+            tracing::info!(
+                actor = !keep_actor,
+                critic = !keep_critic,
+                "stage 2 starts these networks afresh (train.load_actor / train.load_critic false)"
+            );
+            if !keep_actor {
+                // Stage 2's first episodes act with the fresh actor, not the stage-1 one.
+                self.progress.policy_version += 1;
+                self.publish()?;
+            }
+        }
         let stage_1_len = self.replay.online.len();
         if stage_1_len == 0 {
             tracing::warn!(
