@@ -131,14 +131,9 @@ struct LearnerBenchArgs {
     /// Hidden layer widths of the actor and the critics (learner).
     #[arg(long, value_delimiter = ',', default_value = "256,256,256")]
     hidden: Vec<u32>,
-    /// Critic member shards with `members` parallelism, one row range per thread (learner;
-    /// default: --shards-per-thread per thread).
-    #[arg(long, conflicts_with = "shards_per_thread")]
+    /// Critic member shards with `members` parallelism (learner; default: one per thread).
+    #[arg(long)]
     shards: Option<usize>,
-    /// Pieces of work per thread with `members` parallelism, as `learner.shards_per_thread`
-    /// (learner).
-    #[arg(long, default_value_t = 1)]
-    shards_per_thread: usize,
     /// Critic ensemble size; the target minimum draws 2 from all of them (learner).
     #[arg(long, default_value_t = 10)]
     critics: u32,
@@ -454,7 +449,6 @@ fn bench_learner(seconds: f64, args: &LearnerBenchArgs) -> Result<()> {
             obs_dim,
             action_dim,
             shards: args.shards,
-            shards_per_thread: args.shards_per_thread.max(1),
             ..Default::default()
         };
         reports.push(rfcl_learner::bench::run(&cfg)?);

@@ -32,11 +32,9 @@ pub struct BenchConfig {
     /// [`crate::runtime::configure_cpu`] and [`Sac::set_member_threads`]).
     pub threads: i32,
     pub parallelism: Parallelism,
-    /// Critic member shards with `members` parallelism, one row range per thread (`None`:
-    /// `shards_per_thread`).
+    /// Critic member shards with `members` parallelism (`None`: the learner's default,
+    /// [`crate::members::SHARDS_PER_THREAD`] per thread).
     pub shards: Option<usize>,
-    /// Pieces of work per thread with `members` parallelism, as `learner.shards_per_thread`.
-    pub shards_per_thread: usize,
     /// Untimed iterations before measuring, per schedule.
     pub warmup_iterations: u32,
     /// Timed windows per schedule; the best one is reported (the others are noise from whatever
@@ -64,7 +62,6 @@ impl Default for BenchConfig {
             threads: 2,
             parallelism: Parallelism::Members,
             shards: None,
-            shards_per_thread: 1,
             warmup_iterations: 1,
             windows: 3,
             window_seconds: 5.0,
@@ -141,7 +138,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
         let mut sac = Sac::new(cfg.obs_dim, cfg.action_dim, &sac_cfg, &net, cfg.seed)?;
         match cfg.shards {
             Some(shards) => sac.set_member_parallelism(member_threads as usize, shards),
-            None => sac.set_member_threads(member_threads as usize, cfg.shards_per_thread),
+            None => sac.set_member_threads(member_threads as usize),
         }
         shards_used = if sac.member_threads() > 1 {
             sac.member_shards()

@@ -159,7 +159,6 @@ async fn run(args: Args) -> Result<()> {
             parallelism = ?cfg.learner.parallelism,
             op_threads = applied.threads,
             member_threads,
-            shards_per_thread = cfg.learner.shards_per_thread,
             "SAC updates on the CPU"
         );
         if applied.threads > 1 && std::env::var_os("OMP_WAIT_POLICY").is_none() {
@@ -216,7 +215,7 @@ async fn run(args: Args) -> Result<()> {
         }
     };
     let mut trainer = trainer;
-    trainer.set_member_threads(member_threads, cfg.learner.shards_per_thread as usize);
+    trainer.set_member_threads(member_threads);
 
     let listener = TcpListener::bind(SocketAddr::new(args.bind, args.port))
         .await

@@ -24,14 +24,18 @@ use crate::batch::Batch;
 use crate::nets::CriticEnsemble;
 use crate::sac::{mean_squared_td_error, polyak_update, CriticStep};
 
+/// Shards per member thread (see [`MemberThreads::per_thread`]). One: finer work, balanced by the
+/// queue, was slower in whole runs on the 2-core machine, where the simulators share the cores
+/// (benches/RESULTS.md, "Finer work per thread"): the smaller matrix products cost more than a
+/// descheduled thread's share of the joins.
+pub const SHARDS_PER_THREAD: usize = 1;
+
 /// How an agent spreads its updates: on how many threads (1 = everything on the calling thread),
-/// with the critic ensemble's members split into how many contiguous shards and the minibatch's
-/// rows into how many ranges.
+/// with the critic ensemble's members split into how many contiguous shards.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MemberThreads {
     threads: usize,
     shards: usize,
-    row_ranges: usize,
 }
 
 impl MemberThreads {
@@ -39,22 +43,19 @@ impl MemberThreads {
     pub const SERIAL: Self = Self {
         threads: 1,
         shards: 1,
-        row_ranges: 1,
     };
 
-    /// `threads` threads with `per_thread` pieces of work each (`learner.shards_per_thread`):
-    /// `threads · per_thread` member shards (at most one per member) and as many row ranges.
-    pub fn per_thread(threads: usize, per_thread: usize, members: usize, device: Device) -> Self {
-        let pieces = threads.saturating_mul(per_thread.max(1));
-        let mut split = Self::new(threads, pieces, members, device);
-        if split.is_parallel() {
-            split.row_ranges = pieces.max(split.threads);
-        }
-        split
+    /// `threads` threads with [`SHARDS_PER_THREAD`] shards each.
+    pub fn per_thread(threads: usize, members: usize, device: Device) -> Self {
+        Self::new(
+            threads,
+            threads.saturating_mul(SHARDS_PER_THREAD),
+            members,
+            device,
+        )
     }
 
-    /// `threads` clamped to 1..=members (1 off the CPU), `shards` to threads..=members; one row
-    /// range per thread.
+    /// `threads` clamped to 1..=members (1 off the CPU), `shards` to threads..=members.
     pub fn new(threads: usize, shards: usize, members: usize, device: Device) -> Self {
         let threads = match device {
             Device::Cpu => threads.clamp(1, members),
@@ -63,7 +64,6 @@ impl MemberThreads {
         Self {
             threads,
             shards: shards.clamp(threads, members),
-            row_ranges: threads,
         }
     }
 
@@ -73,10 +73,6 @@ impl MemberThreads {
 
     pub fn shards(&self) -> usize {
         self.shards
-    }
-
-    pub fn row_ranges(&self) -> usize {
-        self.row_ranges
     }
 
     /// Whether updates run on several threads (otherwise: the batched computation).
@@ -125,8 +121,7 @@ impl MemberThreads {
     }
 
     /// A per-row computation on `rows` rows, such as the critic's regression target or the
-    /// actor's loss and gradients: the rows split into contiguous ranges (one per thread unless
-    /// [`per_thread`](Self::per_thread) asked for more),
+    /// actor's loss and gradients: the rows split into one contiguous range per thread,
     /// `job(start, len)` prepares each range's work (on the calling thread), the threads `run`
     /// them; the parts in row order. Not parallel: one job on all rows, run here.
     pub fn by_rows<J: Send, T: Send>(
@@ -138,7 +133,7 @@ impl MemberThreads {
         if !self.is_parallel() {
             return vec![run(job(0, rows))];
         }
-        let jobs = shard_ranges(rows, self.row_ranges)
+        let jobs = shard_ranges(rows, self.threads)
             .into_iter()
             .map(|(start, len)| job(start, len))
             .collect();
@@ -265,21 +260,14 @@ mod tests {
 
     #[test]
     fn threads_and_shards_are_clamped_to_the_members() {
-        let cpu = MemberThreads::per_thread(4, 1, 10, Device::Cpu);
-        assert_eq!((cpu.threads(), cpu.shards(), cpu.row_ranges()), (4, 4, 4));
-        let finer = MemberThreads::per_thread(2, 5, 10, Device::Cpu);
-        assert_eq!(
-            (finer.threads(), finer.shards(), finer.row_ranges()),
-            (2, 10, 10)
-        );
-        let capped = MemberThreads::per_thread(2, 8, 10, Device::Cpu);
-        assert_eq!((capped.shards(), capped.row_ranges()), (10, 16));
+        let cpu = MemberThreads::per_thread(4, 10, Device::Cpu);
+        assert_eq!((cpu.threads(), cpu.shards()), (4, 4 * SHARDS_PER_THREAD));
         let few = MemberThreads::new(8, 3, 2, Device::Cpu);
-        assert_eq!((few.threads(), few.shards(), few.row_ranges()), (2, 2, 2));
-        let none = MemberThreads::per_thread(0, 3, 10, Device::Cpu);
+        assert_eq!((few.threads(), few.shards()), (2, 2));
+        let none = MemberThreads::per_thread(0, 10, Device::Cpu);
         assert_eq!(none, MemberThreads::SERIAL);
         assert!(!none.is_parallel());
-        let cuda = MemberThreads::per_thread(4, 2, 10, Device::Cuda(0));
+        let cuda = MemberThreads::per_thread(4, 10, Device::Cuda(0));
         assert_eq!(cuda.threads(), 1);
         assert!(!cuda.is_parallel());
     }

@@ -423,13 +423,12 @@ impl Sac {
         Ok(())
     }
 
-    /// Runs the updates on `threads` threads (at most one per critic member), with `per_thread`
-    /// pieces of work each (`learner.shards_per_thread`, [`MemberThreads::per_thread`]): same
-    /// losses, same gradients up to float summation order, same RNG draws (see
-    /// [`crate::members`]). CUDA ignores it.
-    pub fn set_member_threads(&mut self, threads: usize, per_thread: usize) {
+    /// Runs the critic ensemble's members on `threads` threads (at most one per member), with
+    /// [`crate::members::SHARDS_PER_THREAD`] shards each: same losses, same gradients up to float
+    /// summation order, same RNG draws (see [`crate::members`]). CUDA ignores it.
+    pub fn set_member_threads(&mut self, threads: usize) {
         let members = self.critic.members() as usize;
-        self.member_threads = MemberThreads::per_thread(threads, per_thread, members, self.device);
+        self.member_threads = MemberThreads::per_thread(threads, members, self.device);
     }
 
     /// [`Sac::set_member_threads`] with an explicit shard count (clamped to 1..=members; at

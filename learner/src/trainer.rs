@@ -170,10 +170,10 @@ pub struct Trainer {
 }
 
 impl Trainer {
-    /// Spreads the updates over `threads` threads with `per_thread` pieces of work each (see
+    /// Spreads the critic ensemble's members over `threads` threads (see
     /// [`Sac::set_member_threads`]); the maths stay the same.
-    pub fn set_member_threads(&mut self, threads: usize, per_thread: usize) {
-        self.sac.set_member_threads(threads, per_thread);
+    pub fn set_member_threads(&mut self, threads: usize) {
+        self.sac.set_member_threads(threads);
     }
 
     pub fn progress(&self) -> &Progress {

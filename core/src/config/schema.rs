@@ -394,7 +394,7 @@ pub struct ServiceConfig {
 }
 
 /// The learner process's own options (not the SAC maths: those are `sac`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LearnerConfig {
     /// CPU threads for the SAC updates; `None` = all cores but one (at least 1), which leaves a
@@ -402,21 +402,6 @@ pub struct LearnerConfig {
     pub threads: Option<u32>,
     /// How the SAC updates use those threads on a CPU.
     pub parallelism: Parallelism,
-    /// With `members` parallelism: pieces of work per thread in each parallel step (critic
-    /// member shards, clamped to the ensemble's size, and minibatch row ranges), taken from a
-    /// shared queue. More than one lets a thread that is not descheduled take over the pieces
-    /// of one that is, at the cost of smaller matrix products.
-    pub shards_per_thread: u32,
-}
-
-impl Default for LearnerConfig {
-    fn default() -> Self {
-        Self {
-            threads: None,
-            parallelism: Parallelism::default(),
-            shards_per_thread: 1,
-        }
-    }
 }
 
 /// How the learner spreads its SAC updates over `learner.threads` CPU threads.

@@ -25,12 +25,7 @@ impl RunConfig {
         self.reverse.validate()?;
         self.forward.validate()?;
         self.validate_service()?;
-        at_least_opt("learner.threads", self.learner.threads, 1)?;
-        at_least(
-            "learner.shards_per_thread",
-            self.learner.shards_per_thread,
-            1,
-        )
+        at_least_opt("learner.threads", self.learner.threads, 1)
     }
 
     fn validate_run_and_env(&self) -> Result<(), ConfigError> {
@@ -543,11 +538,5 @@ mod tests {
         );
         cfg.learner.threads = Some(1);
         cfg.validate().unwrap();
-        cfg.learner.shards_per_thread = 0;
-        let err = cfg.validate().unwrap_err().to_string();
-        assert!(
-            err.contains("learner.shards_per_thread") && err.contains(">= 1"),
-            "{err}"
-        );
     }
 }
