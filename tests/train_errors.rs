@@ -45,6 +45,20 @@ fn no_demos_is_refused_before_anything_starts() {
 
     let out = rfcl_train(&[
         config.to_str().unwrap(),
+        "--learner-threads",
+        "0",
+        "--run-dir",
+        run_dir.to_str().unwrap(),
+    ]);
+    assert!(
+        error_line(&out).contains("--learner-threads must be at least 1, got 0"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!run_dir.exists(), "nothing was created");
+
+    let out = rfcl_train(&[
+        config.to_str().unwrap(),
         "train.dataset_path=/nonexistent/demos.h5",
         "--run-dir",
         run_dir.to_str().unwrap(),

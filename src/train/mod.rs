@@ -144,6 +144,9 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
     };
     let mut cfg = cfg;
     if let Some(threads) = args.learner_threads {
+        if threads == 0 {
+            bail!("--learner-threads must be at least 1, got 0");
+        }
         // Stored in the run's config.yml, so that `--resume` keeps the thread count the run was
         // started with.
         cfg.learner.threads = Some(threads);
@@ -161,10 +164,8 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
         RunProgress::default()
     };
     progress.begin_session();
+    // At least 1: the flag is checked above, `learner.threads` by the config's validation.
     let learner_threads = cfg.learner.threads_here(None);
-    if learner_threads == 0 {
-        bail!("learner.threads (--learner-threads) must be at least 1, got 0");
-    }
     Ok(Prepared {
         cfg,
         learner_threads,
