@@ -32,12 +32,7 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
     // data_action_scale: the export records the env-action scale of spec 6.4, and GetRunInfo
     // gives actors the same.
     let config = write_config(dir.path(), W, STEPS, "");
-    let mut text = std::fs::read_to_string(&config).unwrap();
-    text = text.replace(
-        "  shuffle_demos: false\n",
-        "  shuffle_demos: false\n  data_action_scale: 1.5\n",
-    );
-    std::fs::write(&config, text).unwrap();
+    add_train_keys(&config, "  data_action_scale: 1.5\n");
     let curriculum = Curriculum::start(&config, &demos, &run_dir);
     let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
     let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();

@@ -68,16 +68,8 @@ async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
     assert_eq!((offline.len, offline.capacity), (40, 1000));
     assert_eq!(manifest.online.len, 12);
     // Optimiser states were kept: Adam's step counts run on over the transition.
-    let optimizers = tch::Tensor::read_safetensors(ckpt.join(&manifest.optimizers_file)).unwrap();
-    let step = |name: &str| {
-        optimizers
-            .iter()
-            .find(|(n, _)| n == name)
-            .map(|(_, t)| t.int64_value(&[]))
-            .unwrap()
-    };
-    assert_eq!(step("critic/step"), (G * 9) as i64);
-    assert_eq!(step("actor/step"), (G * 9) as i64);
+    assert_eq!(adam_step_count(&run_dir, "critic"), (G * 9) as i64);
+    assert_eq!(adam_step_count(&run_dir, "actor"), (G * 9) as i64);
 
     // The metrics rows show the stage change with its step.
     let csv = std::fs::read_to_string(run_dir.join("metrics.csv")).unwrap();
@@ -102,11 +94,7 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
     let run_dir = dir.path().join("run");
     let demos = write_demos(dir.path());
     let config = write_config(dir.path(), W, 100_000, "");
-    let text = std::fs::read_to_string(&config).unwrap().replace(
-        "  shuffle_demos: false\n",
-        "  shuffle_demos: false\n  stage_1_only: true\n",
-    );
-    std::fs::write(&config, text).unwrap();
+    add_train_keys(&config, "  stage_1_only: true\n");
     let curriculum = Curriculum::start(&config, &demos, &run_dir);
     let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
     let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
@@ -167,11 +155,7 @@ async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_
     let run_dir = dir.path().join("run");
     let demos = write_demos(dir.path());
     let config = write_config(dir.path(), W, 100_000, "");
-    let text = std::fs::read_to_string(&config).unwrap().replace(
-        "  shuffle_demos: false\n",
-        "  shuffle_demos: false\n  load_actor: false\n  load_critic: false\n",
-    );
-    std::fs::write(&config, text).unwrap();
+    add_train_keys(&config, "  load_actor: false\n  load_critic: false\n");
     let curriculum = Curriculum::start(&config, &demos, &run_dir);
     let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
     let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
@@ -196,17 +180,24 @@ async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_
 
     // Fresh Adam states: the step counts hold stage 2's one iteration only.
     assert!(learner.sigterm().success());
-    let ckpt = checkpoint::checkpoint_dir(&run_dir);
+    for optimiser in ["critic", "actor", "temperature"] {
+        assert_eq!(
+            adam_step_count(&run_dir, optimiser),
+            G as i64,
+            "{optimiser}"
+        );
+    }
+}
+
+/// The step count of `optimiser`'s Adam in the run's last checkpoint.
+fn adam_step_count(run_dir: &std::path::Path, optimiser: &str) -> i64 {
+    let ckpt = checkpoint::checkpoint_dir(run_dir);
     let manifest = checkpoint::read_manifest(&ckpt).unwrap().unwrap();
     let optimizers = tch::Tensor::read_safetensors(ckpt.join(&manifest.optimizers_file)).unwrap();
-    let step = |name: &str| {
-        optimizers
-            .iter()
-            .find(|(n, _)| n == name)
-            .map(|(_, t)| t.int64_value(&[]))
-            .unwrap()
-    };
-    assert_eq!(step("critic/step"), G as i64);
-    assert_eq!(step("actor/step"), G as i64);
-    assert_eq!(step("temperature/step"), G as i64);
+    let name = format!("{optimiser}/step");
+    optimizers
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, t)| t.int64_value(&[]))
+        .unwrap()
 }

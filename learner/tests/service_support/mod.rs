@@ -65,6 +65,16 @@ pub fn write_config(dir: &Path, seed_steps: u64, steps: u64, sac_extra: &str) ->
     path
 }
 
+/// Adds `keys` (YAML lines, each indented by two spaces) to the `train:` section of a config
+/// written by [`write_config`].
+pub fn add_train_keys(config: &Path, keys: &str) {
+    let text = std::fs::read_to_string(config).unwrap().replace(
+        "  shuffle_demos: false\n",
+        &format!("  shuffle_demos: false\n{keys}"),
+    );
+    std::fs::write(config, text).unwrap();
+}
+
 /// The run token of the test services.
 pub const TEST_TOKEN: &str = "learner-test-token-0123";
 
