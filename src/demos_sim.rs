@@ -1,13 +1,14 @@
 //! `rfcl demos generate --env <ManiSkill3 task>` and `rfcl demos convert`: demos with simulator
 //! states for the Python suites, made by ManiSkill's own tools (spec 7.1, "Demos"):
 //!
-//! 1. `python -m mani_skill.examples.motionplanning.panda.run -e ENV -n N --only-count-success
-//!    -b physx_cpu` plans N successful episodes under `pd_joint_pos` (seeds 0, 1, ...), recorded
-//!    with their env states (generate only);
+//! 1. `python -m mani_skill.examples.motionplanning.panda.run -e ENV -n S+N --only-count-success
+//!    -b physx_cpu` plans S+N successful episodes under `pd_joint_pos` (seeds 0, 1, ...), recorded
+//!    with their env states (generate only; the planner always starts at seed 0, so `--seed S`
+//!    plans the first S too and drops them);
 //! 2. `python -m mani_skill.trajectory.replay_trajectory -c pd_joint_delta_pos -o state
 //!    --save-traj -b physx_cpu` replays them in the run's control mode with state observations,
 //!    saving the replays that succeed;
-//! 3. the first N successful episodes are written to `--out` (+ its JSON sidecar) with
+//! 3. the first N successful episodes with seed ≥ S are written to `--out` (+ its JSON sidecar) with
 //!    core's writer, which `rfcl demos inspect` and the services read.
 //!
 //! Both tools run in a temporary directory (ManiSkill writes beside its input), with the venv's
@@ -20,7 +21,7 @@ use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use rfcl_core::demo::DemoSet;
+use rfcl_core::demo::{Demo, DemoSet};
 
 /// The control mode the presets train in (spec 7.1).
 pub const CONTROL_MODE: &str = "pd_joint_delta_pos";
@@ -66,20 +67,19 @@ pub fn is_maniskill_env(env: &str) -> bool {
     MOTION_PLANNED.contains(&env)
 }
 
-/// `rfcl demos generate --env ENV -n N --out OUT` for a ManiSkill3 task.
+/// `rfcl demos generate --env ENV -n N --out OUT --seed S` for a ManiSkill3 task: the first N
+/// successful episodes from motion-planning seeds S, S+1, ...
 pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
     if num == 0 {
         bail!("-n must be at least 1");
     }
-    if seed != 0 {
-        bail!(
-            "--seed {seed}: ManiSkill's motion planner always plans seeds 0, 1, 2, ...; drop --seed \
-             for {env}"
-        );
-    }
+    let skipped = u32::try_from(seed)
+        .ok()
+        .filter(|s| s.checked_add(num).is_some())
+        .with_context(|| format!("--seed {seed}: too large (the planner plans seeds 0..seed+n)"))?;
     let tmp = temp_dir_near(out)?;
-    let bar = bar(u64::from(num));
-    let mut planned = num;
+    let bar = bar(u64::from(skipped + num));
+    let mut planned = skipped + num;
     for attempt in 1..=ATTEMPTS {
         bar.set_position(0);
         bar.set_length(u64::from(planned));
@@ -110,8 +110,9 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
             .join("motionplanning")
             .join("trajectory.h5");
         let converted = replay(&bar, &raw, u64::from(planned), tmp.path())?;
-        let set = DemoSet::load(&converted)
+        let mut set = DemoSet::load(&converted)
             .with_context(|| format!("reading ManiSkill's replay {}", converted.display()))?;
+        set.demos = from_seed(set.demos, seed);
         let ok = set.demos.iter().filter(|d| d.succeeded).count() as u32;
         if ok >= num {
             bar.finish_and_clear();
@@ -124,7 +125,7 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
             successful = ok,
             "fewer successful replays than asked; planning more"
         );
-        planned = num + 2 * (num - ok);
+        planned = skipped + num + 2 * (num - ok);
     }
     bar.finish_and_clear();
     bail!(
@@ -176,6 +177,17 @@ pub fn convert(input: &Path, out: &Path) -> Result<()> {
         );
     }
     write_first(&set, ok, out, "converted")
+}
+
+/// The demos whose reset seed is at least `seed` (all of them for seed 0, seedless ones included).
+fn from_seed(demos: Vec<Demo>, seed: u64) -> Vec<Demo> {
+    if seed == 0 {
+        return demos;
+    }
+    demos
+        .into_iter()
+        .filter(|d| d.reset.seed.is_some_and(|s| s >= seed))
+        .collect()
 }
 
 /// Replays `raw` into the target control mode with state observations; the output's path.
@@ -374,5 +386,33 @@ mod tests {
         let replay = "Replaying traj_3:  43%|████▎     | 32/74 [00:00<00:00, 319.15step/s]";
         assert_eq!(progress(Tool::Replay, replay), Some(3));
         assert_eq!(progress(Tool::Replay, "Replayed 2 episodes"), None);
+    }
+
+    #[test]
+    fn from_seed_keeps_the_demos_at_or_after_it() {
+        let demo = |seed| Demo {
+            episode_id: 0,
+            obs_dim: 0,
+            action_dim: 0,
+            state_dim: 0,
+            obs: vec![],
+            actions: vec![],
+            success: vec![],
+            env_states: vec![],
+            succeeded: true,
+            success_source: rfcl_core::demo::SuccessSource::Steps,
+            reset: rfcl_core::demo::ResetArgs {
+                seed,
+                ..Default::default()
+            },
+        };
+        let seeds = |demos: Vec<Demo>| demos.iter().map(|d| d.reset.seed).collect::<Vec<_>>();
+        let all = || vec![demo(Some(0)), demo(Some(2)), demo(None), demo(Some(5))];
+        assert_eq!(
+            seeds(from_seed(all(), 0)),
+            [Some(0), Some(2), None, Some(5)]
+        );
+        assert_eq!(seeds(from_seed(all(), 2)), [Some(2), Some(5)]);
+        assert_eq!(seeds(from_seed(all(), 6)), []);
     }
 }

@@ -201,7 +201,9 @@ enum DemosCommand {
         #[arg(long)]
         out: PathBuf,
         /// Seed of the generator (PointMaze: it orders the start cells after the three dead ends
-        /// that the maze-covering demos always start from; MetaWorld: the first episode seed).
+        /// that the maze-covering demos always start from; MetaWorld: the first episode seed;
+        /// ManiSkill3: the first motion-planning seed, the planner plans the seeds below it too and
+        /// they are dropped).
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },

@@ -86,6 +86,27 @@ fn generated_demos_load_and_replay_their_success_flags() {
         assert!(demo.succeeded && demo.success.last() == Some(&true));
     }
 
+    // `--seed 1`: the planner's first episode (seed 0) is planned and dropped; what is left is the
+    // same episode the seed-0 file holds for that seed.
+    let from_1 = DemoSet::load(&generate_env_demos_from(
+        "PickCube-v1",
+        1,
+        1,
+        &dir.path().join("from_1.h5"),
+    ))
+    .unwrap();
+    assert_eq!(from_1.demos.len(), 1);
+    let seed = from_1.demos[0]
+        .reset
+        .seed
+        .expect("a planned demo has its seed");
+    assert!(seed >= 1, "seed {seed}");
+    let same = set.demos.iter().find(|d| d.reset.seed == Some(seed));
+    assert!(
+        same.is_some_and(|d| d.env_states == from_1.demos[0].env_states),
+        "the demo of seed {seed} differs from the seed-0 file's"
+    );
+
     // `rfcl demos convert` on what a user brings: a motion-planning file under pd_joint_pos,
     // without observations.
     let python = std::env::var("RFCL_PYTHON")

@@ -53,6 +53,11 @@ pub fn generate_demos(dir: &Path) -> PathBuf {
 
 /// `rfcl demos generate --env ENV -n N --out OUT`; returns `out`.
 pub fn generate_env_demos(env: &str, n: u32, out: &Path) -> PathBuf {
+    generate_env_demos_from(env, n, 0, out)
+}
+
+/// [`generate_env_demos`] from the generator's seed `seed` (`--seed`).
+pub fn generate_env_demos_from(env: &str, n: u32, seed: u64, out: &Path) -> PathBuf {
     let result = Command::new(rfcl())
         .args([
             "demos",
@@ -61,6 +66,8 @@ pub fn generate_env_demos(env: &str, n: u32, out: &Path) -> PathBuf {
             env,
             "-n",
             &n.to_string(),
+            "--seed",
+            &seed.to_string(),
             "--out",
         ])
         .arg(out)
