@@ -10,7 +10,8 @@ use thiserror::Error;
 use crate::difficulty::Difficulty;
 use crate::forward::{Forward, LevelSource};
 use crate::reverse::{DemoMeta, ReportEffect, Reverse};
-use crate::stage::{Stage, StageChange, StageMachine};
+use crate::stage::{ReplanError, Stage, StageChange, StageMachine};
+use rfcl_core::config::StagePlan;
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum CurriculumError {
@@ -31,6 +32,8 @@ pub enum CurriculumError {
          service.stop_at_eval_success)"
     )]
     Finished,
+    #[error(transparent)]
+    Replan(#[from] ReplanError),
 }
 
 /// Where an episode starts.
@@ -207,6 +210,16 @@ impl Curriculum {
     /// Ends the run (the stop rule, [`crate::stop`]).
     pub fn finish(&mut self, env_steps: u64) -> Option<StageChange> {
         self.stages.finish(env_steps)
+    }
+
+    /// Brings a restored curriculum in line with the stage plan of the config the run resumes
+    /// under ([`StageMachine::replan`]).
+    pub fn replan(
+        &mut self,
+        plan: StagePlan,
+        env_steps: u64,
+    ) -> Result<Option<StageChange>, CurriculumError> {
+        Ok(self.stages.replan(plan, env_steps)?)
     }
 
     pub fn stages(&self) -> &StageMachine {

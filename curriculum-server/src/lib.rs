@@ -24,7 +24,7 @@ pub use curriculum::{
 pub use difficulty::{DemoAssessment, DemoRecord, Difficulty};
 pub use forward::{Forward, Level, LevelSource};
 pub use reverse::{DemoMeta, DemoProgress, ReportEffect, Reverse, StartChoice};
-pub use stage::{Stage, StageChange, StageMachine, StageStatus};
+pub use stage::{ReplanError, Stage, StageChange, StageMachine, StageStatus};
 
 // The service around the pure logic.
 //

@@ -93,7 +93,22 @@ async fn run(args: Args) -> Result<()> {
     // container, a supervisor's restart): the run goes on without anyone passing --resume.
     let snapshot_path = snapshot::snapshot_path(&run_dir);
     let state = if args.resume.is_some() || snapshot_path.exists() {
-        let state = snapshot::load(&snapshot_path, &cfg.name)?;
+        let mut state = snapshot::load(&snapshot_path, &cfg.name)?;
+        let plan = cfg.train.stage_plan()?;
+        let env_steps = state.stats.env_steps;
+        if let Some(change) = state
+            .curriculum
+            .replan(plan, env_steps)
+            .with_context(|| format!("resuming the run in {}", run_dir.display()))?
+        {
+            tracing::info!(
+                from = ?change.from,
+                to = ?change.to,
+                epoch = change.epoch,
+                env_steps,
+                "the config the run resumes under changes its stage plan"
+            );
+        }
         tracing::info!(
             reports = state.stats.episodes,
             env_steps = state.stats.env_steps,

@@ -55,6 +55,16 @@ impl StageStatus {
     }
 }
 
+/// Why a restored run cannot follow the plan of the config it resumes under.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ReplanError {
+    #[error(
+        "the run is still in stage 1 (the reverse curriculum), so it cannot be resumed with \
+         train.stage_2_only: true; start a new run for a forward-only curriculum"
+    )]
+    ForwardOnlyInStage1,
+}
+
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct StageMachine {
     stage: Stage,
@@ -128,6 +138,50 @@ impl StageMachine {
     /// Env steps at which stage 1 ended (`train_stats/stage_1_steps`), once it has.
     pub fn stage_1_end_env_steps(&self) -> Option<u64> {
         self.stage_1_end_env_steps
+    }
+
+    /// Brings a machine restored from a snapshot in line with the plan of the config the run
+    /// resumes under, at `env_steps`. A run that stopped at the end of stage 1 under
+    /// `stage_1_only` goes on into stage 2 when resumed without it, the researcher's natural
+    /// "look at stage 1, then continue"; a run still in stage 1 resumed with `stage_1_only` stops
+    /// at its end, and one already past it stops now. A run still in stage 1 cannot turn
+    /// forward-only: its stage 1 would have no end.
+    pub fn replan(
+        &mut self,
+        plan: StagePlan,
+        env_steps: u64,
+    ) -> Result<Option<StageChange>, ReplanError> {
+        match plan {
+            StagePlan::ForwardOnly if self.stage == Stage::Reverse => {
+                Err(ReplanError::ForwardOnlyInStage1)
+            }
+            StagePlan::ReverseOnly => {
+                self.stage_1_only = true;
+                Ok(if self.stage == Stage::Forward {
+                    self.finish(env_steps)
+                } else {
+                    None
+                })
+            }
+            StagePlan::Both | StagePlan::ForwardOnly => {
+                self.stage_1_only = false;
+                let stopped_after_stage_1 = self.stage == Stage::Finished
+                    && self.finished_in == Some(Stage::Reverse)
+                    && self.stage_1_end_env_steps.is_some();
+                if !stopped_after_stage_1 {
+                    return Ok(None);
+                }
+                self.stage = Stage::Forward;
+                self.finished_in = None;
+                self.epoch += 1;
+                Ok(Some(StageChange {
+                    from: Stage::Finished,
+                    to: Stage::Forward,
+                    epoch: self.epoch,
+                    env_steps,
+                }))
+            }
+        }
     }
 
     /// Ends stage 1 at `env_steps` (spec 2.7, 4): to stage 2, or to the end with `stage_1_only`.
@@ -230,5 +284,62 @@ mod tests {
         };
         let err = both.stage_plan().unwrap_err().to_string();
         assert!(err.contains("train.stage_2_only"), "{err}");
+    }
+
+    #[test]
+    fn a_resumed_run_follows_the_plan_it_resumes_under() {
+        // Stopped at the end of stage 1 under stage_1_only: resumed without it, stage 2 begins
+        // in a new epoch, and stage 1's end is kept.
+        let mut stages = StageMachine::new(StagePlan::ReverseOnly);
+        stages.end_stage_1(1000);
+        assert_eq!(
+            stages.replan(StagePlan::Both, 1010),
+            Ok(Some(StageChange {
+                from: Stage::Finished,
+                to: Stage::Forward,
+                epoch: 2,
+                env_steps: 1010
+            }))
+        );
+        assert_eq!(stages.status().curriculum_stage, Stage::Forward);
+        assert_eq!(stages.stage_1_end_env_steps(), Some(1000));
+        assert_eq!(stages.replan(StagePlan::Both, 1020), Ok(None));
+        assert_eq!(stages.finish(2000).map(|c| c.from), Some(Stage::Forward));
+
+        // Forward-only after stage 1 ended under stage_1_only: the same.
+        let mut stages = StageMachine::new(StagePlan::ReverseOnly);
+        stages.end_stage_1(1000);
+        let change = stages.replan(StagePlan::ForwardOnly, 1000).unwrap();
+        assert_eq!(change.map(|c| c.to), Some(Stage::Forward));
+
+        // Finished in stage 1 by the stop rule (stage 1 never ended): stays finished.
+        let mut stages = StageMachine::new(StagePlan::Both);
+        stages.finish(500);
+        assert_eq!(stages.replan(StagePlan::Both, 500), Ok(None));
+        assert!(stages.status().finished());
+
+        // In stage 1, resumed with stage_1_only: the end of stage 1 ends the run.
+        let mut stages = StageMachine::new(StagePlan::Both);
+        assert_eq!(stages.replan(StagePlan::ReverseOnly, 100), Ok(None));
+        assert_eq!(stages.end_stage_1(300).map(|c| c.to), Some(Stage::Finished));
+
+        // In stage 2, resumed with stage_1_only: over now, its curriculum stage kept.
+        let mut stages = StageMachine::new(StagePlan::Both);
+        stages.end_stage_1(300);
+        let change = stages.replan(StagePlan::ReverseOnly, 400).unwrap().unwrap();
+        assert_eq!(
+            (change.from, change.to, change.epoch),
+            (Stage::Forward, Stage::Finished, 2)
+        );
+        assert_eq!(stages.number(), 2);
+
+        // In stage 1, resumed forward-only: refused, the machine unchanged.
+        let mut stages = StageMachine::new(StagePlan::Both);
+        let before = stages.clone();
+        assert_eq!(
+            stages.replan(StagePlan::ForwardOnly, 100),
+            Err(ReplanError::ForwardOnlyInStage1)
+        );
+        assert_eq!(stages, before);
     }
 }

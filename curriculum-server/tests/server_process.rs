@@ -814,3 +814,110 @@ async fn an_oversized_request_is_refused_and_the_server_keeps_serving() {
         "{metrics}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stage_1_only_run_resumed_without_it_goes_on_into_stage_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 30.0);
+    let run_dir = dir.path().join("run");
+    let (d, c, r) = (
+        demos.to_str().unwrap(),
+        config.to_str().unwrap(),
+        run_dir.to_str().unwrap(),
+    );
+    let mut server = ServerProcess::start(&[
+        "--demos",
+        d,
+        "--config",
+        c,
+        "--run-dir",
+        r,
+        "train.stage_1_only=true",
+    ]);
+    let mut client = server.client().await;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut reports = 0;
+    loop {
+        let Ok(lease) = client.acquire(acquire_req(0)).await else {
+            break;
+        };
+        let lease = lease.into_inner();
+        assert_eq!(lease.kind, v1::LeaseKind::DemoState as i32);
+        let (success, ret) = synthetic_outcome(&mut rng, &lease, 21);
+        client
+            .report(report_for(&lease, success, ret))
+            .await
+            .unwrap();
+        reports += 1;
+        assert!(
+            reports < 20_000,
+            "stage 1 did not end within 20000 episodes"
+        );
+    }
+    let ended = state_view(&mut client).await;
+    assert!(ended.finished && ended.stage == 1, "{ended:?}");
+    let stage_1_end = ended.stage_1_env_steps.expect("stage 1 ended");
+    assert!(server.sigterm().success());
+
+    // Resumed under the config without stage_1_only: stage 2 in a new epoch, stage 1's end kept.
+    let restarted = ServerProcess::start(&["--demos", d, "--config", c, "--resume", r]);
+    let mut client = restarted.client().await;
+    let mut stages = client
+        .watch_stage(v1::WatchStageRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    let first = stages.message().await.unwrap().unwrap();
+    assert_eq!(
+        (first.stage, first.stage_epoch, first.finished),
+        (2, 2, false)
+    );
+    let view = state_view(&mut client).await;
+    assert_eq!(view.stage_1_env_steps, Some(stage_1_end));
+    assert_eq!(view.env_steps, ended.env_steps);
+    let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
+    assert_eq!((lease.kind, lease.stage), (v1::LeaseKind::Level as i32, 2));
+    let ack = client
+        .report(report_for(&lease, true, 2.0))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(ack.applied);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_in_stage_1_cannot_be_resumed_forward_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = write_demos(dir.path(), 3, 20);
+    let config = write_config(dir.path(), 30.0);
+    let run_dir = dir.path().join("run");
+    let (d, c, r) = (
+        demos.to_str().unwrap(),
+        config.to_str().unwrap(),
+        run_dir.to_str().unwrap(),
+    );
+    let mut server = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
+    assert_eq!(state_view(&mut server.client().await).await.stage, 1);
+    assert!(server.sigterm().success());
+    let out = run_server(
+        &[
+            "--demos",
+            d,
+            "--config",
+            c,
+            "--resume",
+            r,
+            "train.stage_2_only=true",
+        ],
+        Some(TEST_TOKEN),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(r)
+            && stderr.contains("still in stage 1")
+            && stderr.contains("train.stage_2_only"),
+        "{stderr}"
+    );
+}
