@@ -59,10 +59,15 @@ impl StageStatus {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ReplanError {
     #[error(
-        "the run is still in stage 1 (the reverse curriculum), so it cannot be resumed with \
-         train.stage_2_only: true; start a new run for a forward-only curriculum"
+        "the run is still in stage 1 (the reverse curriculum), so it cannot be resumed \
+         forward-only (train.stage_2_only: true, or train.mode: rlpd); start a new run for that"
     )]
     ForwardOnlyInStage1,
+    #[error(
+        "the run is past stage 1 (its reverse curriculum ended), so it cannot be resumed with \
+         train.stage_1_only: true"
+    )]
+    Stage1OnlyInStage2,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -144,29 +149,30 @@ impl StageMachine {
     /// resumes under, at `env_steps`. A run that stopped at the end of stage 1 under
     /// `stage_1_only` goes on into stage 2 when resumed without it, the researcher's natural
     /// "look at stage 1, then continue"; a run still in stage 1 resumed with `stage_1_only` stops
-    /// at its end, and one already past it stops now. A run still in stage 1 cannot turn
-    /// forward-only: its stage 1 would have no end.
+    /// at its end. A run past stage 1 cannot be resumed with `stage_1_only`, nor one still in
+    /// stage 1 forward-only: either would give the stage-1 end a meaning it does not have. A run
+    /// the stop rule finished stays finished.
     pub fn replan(
         &mut self,
         plan: StagePlan,
         env_steps: u64,
     ) -> Result<Option<StageChange>, ReplanError> {
+        // Snapshots from before `finished_in` could only finish at the end of stage 1.
+        let finished_in = self.finished_in.unwrap_or(Stage::Reverse);
+        let in_stage_1 = self.stage == Stage::Reverse;
+        let past_stage_1 = self.stage == Stage::Forward
+            || (self.stage == Stage::Finished && finished_in == Stage::Forward);
         match plan {
-            StagePlan::ForwardOnly if self.stage == Stage::Reverse => {
-                Err(ReplanError::ForwardOnlyInStage1)
-            }
+            StagePlan::ForwardOnly if in_stage_1 => Err(ReplanError::ForwardOnlyInStage1),
+            StagePlan::ReverseOnly if past_stage_1 => Err(ReplanError::Stage1OnlyInStage2),
             StagePlan::ReverseOnly => {
                 self.stage_1_only = true;
-                Ok(if self.stage == Stage::Forward {
-                    self.finish(env_steps)
-                } else {
-                    None
-                })
+                Ok(None)
             }
             StagePlan::Both | StagePlan::ForwardOnly => {
                 self.stage_1_only = false;
                 let stopped_after_stage_1 = self.stage == Stage::Finished
-                    && self.finished_in == Some(Stage::Reverse)
+                    && finished_in == Stage::Reverse
                     && self.stage_1_end_env_steps.is_some();
                 if !stopped_after_stage_1 {
                     return Ok(None);
@@ -323,15 +329,34 @@ mod tests {
         assert_eq!(stages.replan(StagePlan::ReverseOnly, 100), Ok(None));
         assert_eq!(stages.end_stage_1(300).map(|c| c.to), Some(Stage::Finished));
 
-        // In stage 2, resumed with stage_1_only: over now, its curriculum stage kept.
+        // Past stage 1, resumed with stage_1_only: refused, in stage 2 or finished in it.
         let mut stages = StageMachine::new(StagePlan::Both);
         stages.end_stage_1(300);
-        let change = stages.replan(StagePlan::ReverseOnly, 400).unwrap().unwrap();
         assert_eq!(
-            (change.from, change.to, change.epoch),
-            (Stage::Forward, Stage::Finished, 2)
+            stages.replan(StagePlan::ReverseOnly, 400),
+            Err(ReplanError::Stage1OnlyInStage2)
         );
-        assert_eq!(stages.number(), 2);
+        stages.finish(500);
+        assert_eq!(
+            stages.replan(StagePlan::ReverseOnly, 500),
+            Err(ReplanError::Stage1OnlyInStage2)
+        );
+
+        // Finished in stage 2 by the stop rule: stays finished under either other plan.
+        for plan in [StagePlan::Both, StagePlan::ForwardOnly] {
+            let before = stages.clone();
+            assert_eq!(stages.replan(plan, 500), Ok(None));
+            assert_eq!(stages, before);
+        }
+
+        // A snapshot from before `finished_in` (it could only finish at the end of stage 1).
+        let mut stages = StageMachine::new(StagePlan::ReverseOnly);
+        stages.end_stage_1(1000);
+        let mut json = serde_json::to_value(&stages).unwrap();
+        json.as_object_mut().unwrap().remove("finished_in");
+        let mut stages: StageMachine = serde_json::from_value(json).unwrap();
+        let change = stages.replan(StagePlan::Both, 1000).unwrap();
+        assert_eq!(change.map(|c| c.to), Some(Stage::Forward));
 
         // In stage 1, resumed forward-only: refused, the machine unchanged.
         let mut stages = StageMachine::new(StagePlan::Both);
