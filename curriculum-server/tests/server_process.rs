@@ -84,15 +84,8 @@ fn curriculum_part(v: &DashboardView) -> serde_json::Value {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path(), 3, 20);
-    let config = write_config(dir.path(), 30.0);
-    let run_dir = dir.path().join("run");
-    let (d, c, r) = (
-        demos.to_str().unwrap(),
-        config.to_str().unwrap(),
-        run_dir.to_str().unwrap(),
-    );
-    let mut server = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
+    let files = RunFiles::write(dir.path(), 30.0);
+    let mut server = ServerProcess::start(&files.args("--run-dir", &[]));
     let mut client = server.client().await;
 
     let initial = state_view(&mut client).await;
@@ -154,12 +147,12 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     // Kill -9: no final snapshot. The last periodic snapshot is what a restart must continue from.
     tokio::time::sleep(std::time::Duration::from_millis(300)).await;
     server.sigkill();
-    let snap_path = snapshot::snapshot_path(&run_dir);
+    let snap_path = snapshot::snapshot_path(&files.run_dir);
     let mut snap = snapshot::load(&snap_path, "ctest").expect("a periodic snapshot exists");
     assert!(snap.stats.episodes > 0 && snap.stats.episodes <= before_kill.episodes);
 
     // Started as before, it finds its snapshot in its run directory and continues from it.
-    let mut restarted = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
+    let mut restarted = ServerProcess::start(&files.args("--run-dir", &[]));
     let mut client = restarted.client().await;
     let resumed = state_view(&mut client).await;
     let snap_view = snap.view(
@@ -171,10 +164,13 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     assert_eq!(curriculum_part(&resumed), curriculum_part(&snap_view));
 
     // The restarted server hands out exactly what the snapshot's state hands out in-process.
-    let cfg = rfcl_core::config::resolve_file(&config, &[]).unwrap();
+    let cfg = rfcl_core::config::resolve_file(&files.config, &[]).unwrap();
     let set = {
         let _guard = rfcl_testkit::hdf5::fork_guard();
-        DemoSet::load(&demos).unwrap().select(3, false, 7).unwrap()
+        DemoSet::load(&files.demos)
+            .unwrap()
+            .select(3, false, 7)
+            .unwrap()
     };
     let resets = DemoResets::from_demos(&set);
     for _ in 0..25 {
@@ -818,23 +814,8 @@ async fn an_oversized_request_is_refused_and_the_server_keeps_serving() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stage_1_only_run_resumed_without_it_goes_on_into_stage_2() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path(), 3, 20);
-    let config = write_config(dir.path(), 30.0);
-    let run_dir = dir.path().join("run");
-    let (d, c, r) = (
-        demos.to_str().unwrap(),
-        config.to_str().unwrap(),
-        run_dir.to_str().unwrap(),
-    );
-    let mut server = ServerProcess::start(&[
-        "--demos",
-        d,
-        "--config",
-        c,
-        "--run-dir",
-        r,
-        "train.stage_1_only=true",
-    ]);
+    let files = RunFiles::write(dir.path(), 30.0);
+    let mut server = ServerProcess::start(&files.args("--run-dir", &["train.stage_1_only=true"]));
     let mut client = server.client().await;
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let mut reports = 0;
@@ -862,7 +843,7 @@ async fn a_stage_1_only_run_resumed_without_it_goes_on_into_stage_2() {
     assert!(server.sigterm().success());
 
     // Resumed under the config without stage_1_only: stage 2 in a new epoch, stage 1's end kept.
-    let restarted = ServerProcess::start(&["--demos", d, "--config", c, "--resume", r]);
+    let restarted = ServerProcess::start(&files.args("--resume", &[]));
     let mut client = restarted.client().await;
     let mut stages = client
         .watch_stage(v1::WatchStageRequest::default())
@@ -890,33 +871,18 @@ async fn a_stage_1_only_run_resumed_without_it_goes_on_into_stage_2() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_run_in_stage_1_cannot_be_resumed_forward_only() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path(), 3, 20);
-    let config = write_config(dir.path(), 30.0);
-    let run_dir = dir.path().join("run");
-    let (d, c, r) = (
-        demos.to_str().unwrap(),
-        config.to_str().unwrap(),
-        run_dir.to_str().unwrap(),
-    );
-    let mut server = ServerProcess::start(&["--demos", d, "--config", c, "--run-dir", r]);
+    let files = RunFiles::write(dir.path(), 30.0);
+    let mut server = ServerProcess::start(&files.args("--run-dir", &[]));
     assert_eq!(state_view(&mut server.client().await).await.stage, 1);
     assert!(server.sigterm().success());
     let out = run_server(
-        &[
-            "--demos",
-            d,
-            "--config",
-            c,
-            "--resume",
-            r,
-            "train.stage_2_only=true",
-        ],
+        &files.args("--resume", &["train.stage_2_only=true"]),
         Some(TEST_TOKEN),
     );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{stderr}");
     assert!(
-        stderr.contains(r)
+        stderr.contains(files.run_dir.to_str().unwrap())
             && stderr.contains("still in stage 1")
             && stderr.contains("train.stage_2_only"),
         "{stderr}"

@@ -71,21 +71,45 @@ pub struct ServerProcess {
     pub dashboard: String,
 }
 
-impl ServerProcess {
-    /// Writes 3 demos of 20 steps and the test config into `dir`, then starts a server on them
-    /// with its run directory in `dir/run`.
-    pub fn start_fresh(dir: &Path, lease_timeout_s: f64) -> ServerProcess {
-        let demos = write_demos(dir, 3, 20);
-        let config = write_config(dir, lease_timeout_s);
-        let run_dir = dir.join("run");
-        ServerProcess::start(&[
+/// A test run's files in a directory: 3 demos of 20 steps, the test config, and the run
+/// directory `dir/run`.
+pub struct RunFiles {
+    pub demos: PathBuf,
+    pub config: PathBuf,
+    pub run_dir: PathBuf,
+}
+
+impl RunFiles {
+    pub fn write(dir: &Path, lease_timeout_s: f64) -> RunFiles {
+        RunFiles {
+            demos: write_demos(dir, 3, 20),
+            config: write_config(dir, lease_timeout_s),
+            run_dir: dir.join("run"),
+        }
+    }
+
+    /// The server's arguments for this run: `--demos D --config C RUN_FLAG RUN_DIR` (`RUN_FLAG`
+    /// is `--run-dir` or `--resume`), then `extra`.
+    pub fn args<'a>(&'a self, run_flag: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+        let path = |p: &'a PathBuf| p.to_str().unwrap();
+        let mut args = vec![
             "--demos",
-            demos.to_str().unwrap(),
+            path(&self.demos),
             "--config",
-            config.to_str().unwrap(),
-            "--run-dir",
-            run_dir.to_str().unwrap(),
-        ])
+            path(&self.config),
+            run_flag,
+            path(&self.run_dir),
+        ];
+        args.extend_from_slice(extra);
+        args
+    }
+}
+
+impl ServerProcess {
+    /// Writes a test run's files into `dir` ([`RunFiles`]), then starts a server on them.
+    pub fn start_fresh(dir: &Path, lease_timeout_s: f64) -> ServerProcess {
+        let files = RunFiles::write(dir, lease_timeout_s);
+        ServerProcess::start(&files.args("--run-dir", &[]))
     }
 
     pub fn start(args: &[&str]) -> ServerProcess {
