@@ -3,7 +3,8 @@
 //! 34 start cells); the summary, the run directory and the processes' own counters (learner Health,
 //! curriculum GetState) show that transitions flowed over shared memory and leases over gRPC; no
 //! child outlives the run;
-//! `rfcl eval` runs the exported policy.
+//! `rfcl eval` runs the exported policy. A run whose budget is an eval point ends with its final
+//! policy evaluated as that point.
 //!
 //! The bar is the config's own 0.9: on the 2-core development machine the run
 //! gets there after 75,000-95,000 env steps, in 4-5 minutes (benches/RESULTS.md); a policy that
@@ -213,4 +214,50 @@ fn pointmaze_test_config_trains_to_its_bar() {
     let (success, line) = eval_run(&run_dir, 34);
     assert!(line.contains("34 episodes from held-out seeds"), "{line}");
     assert!(success >= 0.1, "{line}");
+}
+
+/// `train.steps` of 10,000, a multiple of the config's 5,000-step eval points but not of its
+/// 32-step iterations: the learner trains its final policy on all 10,000 steps, and `rfcl train`
+/// waits for that policy's evaluation before it ends the run. Evaluations of 340 episodes
+/// (4 eval envs × 25,500 steps / horizon 300) outlast the learner's exit.
+#[test]
+fn a_budget_on_an_eval_point_ends_with_the_final_policy_evaluated() {
+    const BUDGET: u64 = 10_000;
+    const EPISODES: u64 = 340;
+    let dir = tempfile::tempdir().unwrap();
+    let mut training = start_test_run(
+        dir.path(),
+        &[
+            format!("train.steps={BUDGET}"),
+            "sac.eval_steps=25500".into(),
+        ],
+        "rfcl.stderr",
+    );
+    let status = training.wait(Duration::from_secs(600));
+    assert!(status.success(), "{status}:\n{}", training.stderr());
+    let summary = training.summary();
+    assert_eq!(summary["ending"], "budget", "{summary:#}");
+    let evals = summary["evals"].as_array().unwrap();
+    let steps: Vec<u64> = evals
+        .iter()
+        .map(|e| e["env_steps"].as_u64().unwrap())
+        .collect();
+    assert_eq!(
+        steps.last(),
+        Some(&BUDGET),
+        "the last evaluation is the final policy's: {steps:?}\n{}",
+        training.stderr()
+    );
+    assert_eq!(
+        evals.last().unwrap()["episodes"],
+        EPISODES,
+        "a complete evaluation"
+    );
+    assert!(
+        training
+            .stderr()
+            .contains("waiting for the evaluation of the final policy"),
+        "{}",
+        training.stderr()
+    );
 }

@@ -1,6 +1,7 @@
 //! A run stopped with SIGINT (Ctrl-C) stops every child cleanly, exits 130 and writes its summary;
 //! `rfcl train --resume RUN_DIR` continues it (curriculum snapshot, learner checkpoint) to its bar,
-//! counting wall time and evals over both sessions, with the first session's `--learner-threads`.
+//! counting wall time and evals over both sessions, evaluating no point twice, with the first
+//! session's `--learner-threads`.
 //! The bar is the config's 0.9, as in train_pointmaze.rs.
 mod train_support;
 
@@ -95,6 +96,17 @@ fn sigint_then_resume_runs_to_completion() {
     );
     assert!(summary["env_steps"].as_u64().unwrap() > steps_before);
     assert!(summary["wall_s"].as_f64().unwrap() > stopped["wall_s"].as_f64().unwrap());
+    // No point is evaluated twice: the resumed session's eval actor goes on after the first
+    // session's complete evaluations (the config evaluates every 5,000 env steps).
+    let points: Vec<u64> = summary["evals"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["env_steps"].as_u64().unwrap() / 5000)
+        .collect();
+    let mut distinct = points.clone();
+    distinct.dedup();
+    assert_eq!(points, distinct, "{:#}", summary["evals"]);
     // The first session's evals are kept, with their times.
     let first_eval = &stopped["evals"][0];
     assert!(

@@ -4,7 +4,8 @@
 //! passes a multiple of `sac.eval_freq` — and only once it exceeds the seed steps — it runs
 //! [`episodes_per_eval`] EVAL-lease episodes with the deterministic policy of that moment and
 //! reports them; the curriculum server aggregates them per policy version, keyed by the env steps
-//! at publication, so every curve is exact.
+//! at publication, so every curve is exact. A (re)started eval actor goes on after the newest
+//! complete evaluation the curriculum server has, so a resumed run evaluates no point twice.
 use rfcl_core::config::RunConfig;
 
 pub use rfcl_core::config::episodes_per_eval;
@@ -39,6 +40,12 @@ impl EvalSchedule {
 
     pub fn from_config(cfg: &RunConfig) -> Self {
         Self::new(cfg.sac.eval_freq, cfg.sac.num_seed_steps)
+    }
+
+    /// Goes on after the evaluations already complete, the newest of a policy published at
+    /// `env_steps` (0: none): the next one is due past the next multiple of `eval_freq`.
+    pub fn go_on_after(&mut self, env_steps: u64) {
+        self.done_through = self.done_through.max(env_steps / self.eval_freq);
     }
 
     /// Whether the policy published at `learner_env_steps` is to be evaluated. Marks it evaluated
@@ -92,6 +99,25 @@ mod tests {
         assert!(s.due(45_500));
         assert_eq!(s.skipped(), 0);
         assert!(!s.due(45_900));
+    }
+
+    #[test]
+    fn a_resumed_run_evaluates_no_point_twice() {
+        // Stopped at 176,224 env steps after the evaluation at 160,008: the restored policy is
+        // not evaluated (it is still within the point 160,000), the first past 180,000 is.
+        let mut s = EvalSchedule::new(20_000, 5_000);
+        s.go_on_after(160_008);
+        assert!(!s.due(176_224));
+        assert!(s.due(180_032));
+        assert_eq!(s.skipped(), 0);
+        // Stopped during the evaluation at 180,032 (incomplete): the restored policy stands in.
+        let mut s = EvalSchedule::new(20_000, 5_000);
+        s.go_on_after(160_008);
+        assert!(s.due(181_000));
+        // No evaluation yet: as a fresh start.
+        let mut s = EvalSchedule::new(20_000, 5_000);
+        s.go_on_after(0);
+        assert!(s.due(20_008));
     }
 
     #[test]

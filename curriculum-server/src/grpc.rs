@@ -221,10 +221,16 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
     ) -> Result<Response<v1::CurriculumState>, Status> {
         let view = self.shared.view();
         let json = serde_json::to_string(&view).map_err(|e| Status::internal(e.to_string()))?;
+        let last_complete_eval_env_steps = crate::stop::last_complete_env_steps(
+            &self.shared.lock().stats.evals,
+            rfcl_core::config::episodes_per_eval(&self.shared.cfg),
+        )
+        .unwrap_or(0);
         Ok(Response::new(v1::CurriculumState {
             json,
             stage: view.stage,
             stage_epoch: view.stage_epoch,
+            last_complete_eval_env_steps,
         }))
     }
 }

@@ -28,6 +28,20 @@ pub fn complete_rates(evals: &BTreeMap<u64, EvalAggregate>, episodes_needed: u64
     complete.into_iter().map(|(_, _, rate)| rate).collect()
 }
 
+/// The learner's env steps at the publication of the newest policy whose evaluation is complete
+/// (at least `episodes_needed` episodes): where a (re)started eval actor's schedule goes on from
+/// (spec 5.7).
+pub fn last_complete_env_steps(
+    evals: &BTreeMap<u64, EvalAggregate>,
+    episodes_needed: u64,
+) -> Option<u64> {
+    evals
+        .values()
+        .filter(|e| e.episodes >= episodes_needed.max(1))
+        .map(|e| e.env_steps)
+        .max()
+}
+
 /// Whether the evaluations reached `bar` (never without a bar).
 pub fn reached(
     evals: &BTreeMap<u64, EvalAggregate>,
@@ -71,6 +85,18 @@ mod tests {
         assert!(!reached(&evals, 10, None));
         // Four complete evals are not enough.
         assert_eq!(running_mean(&[1.0; 4]), None);
+    }
+
+    #[test]
+    fn the_newest_complete_eval_is_where_a_restarted_eval_actor_goes_on() {
+        let mut evals = BTreeMap::new();
+        assert_eq!(last_complete_env_steps(&evals, 10), None);
+        evals.insert(3, eval(20_008, 10, 0));
+        evals.insert(7, eval(40_016, 10, 1));
+        // An evaluation cut short by a stop (4 of 10 episodes) is not complete.
+        evals.insert(9, eval(60_000, 4, 0));
+        assert_eq!(last_complete_env_steps(&evals, 10), Some(40_016));
+        assert_eq!(last_complete_env_steps(&evals, 4), Some(60_000));
     }
 
     #[test]

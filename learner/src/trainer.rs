@@ -10,7 +10,8 @@
 //! 3. the metrics row, then the checkpoint, when their env-step boundary is reached; a checkpoint
 //!    also when `sac.save_every_s` seconds passed since the last one and anything changed (it
 //!    writes only the replay's changed segments, so it is cheap enough to take every minute);
-//! 4. the budget (`train.steps`);
+//! 4. the budget (`train.steps`), with one last iteration when the budget falls between two, so
+//!    that the final policy is trained on every env step;
 //! 5. more records: the ingest stops at the next boundary (an iteration due, a metrics row, a
 //!    checkpoint, the budget), so each of them happens at an exact env-step count and a resumed
 //!    run continues exactly.
@@ -261,6 +262,13 @@ impl Trainer {
                 continue;
             }
             if self.progress.env_steps >= self.cfg.train.steps {
+                // The final policy learns from every env step of the budget, so that it is the
+                // one evaluated at the budget's eval point (docs/LEARNER.md, "Training schedule").
+                if self.limiter.updating()
+                    && self.policy_tx.borrow().learner_env_steps < self.progress.env_steps
+                {
+                    self.iterate()?;
+                }
                 self.stop = Some(StopReason::Budget);
                 continue;
             }

@@ -118,3 +118,41 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
         );
     }
 }
+
+/// A budget between two iterations ends with one more iteration on the steps since the last, so
+/// the final policy has learned from every env step and carries the budget as its env steps (the
+/// eval point an evaluation at the budget stands for).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_budget_between_iterations_ends_with_one_more_iteration() {
+    const BETWEEN: u64 = 62;
+    assert_ne!(BETWEEN % K, 0);
+    let dir = tempfile::tempdir().unwrap();
+    let run_dir = dir.path().join("run");
+    let demos = write_demos(dir.path());
+    let config = write_config(dir.path(), W, BETWEEN, "");
+    let curriculum = Curriculum::start(&config, &demos, &run_dir);
+    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
+    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    let mut learner = Learner::start(&args);
+    let mut client = learner.client().await;
+    push(&mut client, batches(0..BETWEEN, 10, 0)).await.unwrap();
+    let status = learner.wait(Duration::from_secs(60));
+    assert!(status.success(), "{status}");
+
+    let iterations = earned(BETWEEN, W) + 1;
+    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        (
+            manifest.progress.env_steps,
+            manifest.progress.critic_updates
+        ),
+        (BETWEEN, G * iterations)
+    );
+    let (_, desc) = PolicyNet::from_export(&run_dir).unwrap();
+    assert_eq!(
+        (desc.policy_version, desc.env_steps),
+        (1 + iterations, BETWEEN)
+    );
+}

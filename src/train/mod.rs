@@ -60,6 +60,8 @@ const PROGRESS_EVERY: u32 = 60;
 const ACTOR_GRACE: Duration = Duration::from_secs(5);
 const LEARNER_GRACE: Duration = Duration::from_secs(120);
 const SERVER_GRACE: Duration = Duration::from_secs(20);
+/// How long the end of a run waits for the next episode of the final policy's evaluation.
+const FINAL_EVAL_PATIENCE: Duration = Duration::from_secs(60);
 /// A service that dies more often than this within the window cannot run: the run stops.
 pub const SERVICE_RESTARTS_MAX: usize = 3;
 pub const SERVICE_RESTART_WINDOW_S: f64 = 600.0;
@@ -614,6 +616,11 @@ impl Session {
                     if status.success() {
                         self.learner_exited = Some(learner.pid);
                         self.learner = None;
+                        if self.ended_by_itself().await == Ending::Budget
+                            && !self.await_final_eval(signals).await
+                        {
+                            return Ok(Ending::Interrupted);
+                        }
                         return Ok(self.ended_by_itself().await);
                     }
                     if let Some(ending) = self.restart(Service::Learner, status, signals).await? {
@@ -780,6 +787,86 @@ impl Session {
             Ending::Stage1Done
         } else {
             Ending::Budget
+        }
+    }
+
+    /// A run that used its budget ends with the evaluation of its final policy when that policy
+    /// passed an eval point not yet evaluated (the learner trains it on every env step of the
+    /// budget, docs/LEARNER.md): the train actors stop, and the run waits while eval episodes come
+    /// in, giving up after [`FINAL_EVAL_PATIENCE`] without one. False when Ctrl-C came first.
+    async fn await_final_eval(&mut self, signals: &mut Signals) -> bool {
+        let cfg = &self.prep.cfg;
+        let Some(last) = self
+            .learner_exited
+            .and_then(|pid| read_final_counters(&self.prep.run_dir, pid))
+        else {
+            return true;
+        };
+        let final_policy = last.counts.policy_version;
+        if cfg.service.num_eval_actors == 0
+            || !self.evals.final_eval_pending(
+                last.counts.env_steps,
+                cfg.sac.eval_freq,
+                cfg.sac.num_seed_steps,
+            )
+        {
+            return true;
+        }
+        for actor in self.actors.iter_mut().filter(|a| !a.eval) {
+            if let Some(child) = actor.child.as_mut() {
+                child.stop(ACTOR_GRACE).await;
+            }
+        }
+        self.bar.println(format!(
+            "train.steps used: waiting for the evaluation of the final policy (version \
+             {final_policy}, {} env steps)",
+            last.counts.env_steps
+        ));
+        let episodes_reported = |view: &Option<DashboardView>| {
+            view.as_ref()
+                .map_or(0, |v| v.evals.iter().map(|p| p.episodes).sum::<u64>())
+        };
+        let mut reported = episodes_reported(&self.last_view);
+        let mut last_news = Instant::now();
+        let mut tick = tokio::time::interval(POLL_EVERY);
+        loop {
+            tokio::select! {
+                _ = tick.tick() => {}
+                _ = signals.recv() => return false,
+            }
+            self.poll_state().await;
+            if self
+                .evals
+                .evals()
+                .iter()
+                .any(|e| e.policy_version >= final_policy)
+            {
+                return true;
+            }
+            let now_reported = episodes_reported(&self.last_view);
+            if now_reported > reported {
+                (reported, last_news) = (now_reported, Instant::now());
+            }
+            let eval_actors_running = self
+                .actors
+                .iter_mut()
+                .filter(|a| a.eval)
+                .any(|a| a.child.as_mut().is_some_and(|c| c.try_wait().is_none()));
+            let why = if !eval_actors_running {
+                "the eval actors stopped".to_string()
+            } else if last_news.elapsed() >= FINAL_EVAL_PATIENCE {
+                format!(
+                    "no evaluation episode came in for {} s",
+                    FINAL_EVAL_PATIENCE.as_secs()
+                )
+            } else {
+                self.draw();
+                continue;
+            };
+            self.bar.println(format!(
+                "warning: {why}: the run ends without the evaluation of its final policy"
+            ));
+            return true;
         }
     }
 

@@ -206,6 +206,15 @@ impl EvalTracker {
     pub fn last(&self) -> Option<CompleteEval> {
         self.evals().pop()
     }
+
+    /// Whether an evaluation of the final policy, published at `env_steps`, is still to come: the
+    /// eval actors evaluate the first policy at or past each multiple of `eval_freq` once past the
+    /// seed steps (spec 5.7), and no complete evaluation is of that multiple yet.
+    pub fn final_eval_pending(&self, env_steps: u64, eval_freq: u64, num_seed_steps: u64) -> bool {
+        let eval_freq = eval_freq.max(1);
+        let evaluated_through = self.last().map_or(0, |e| e.env_steps / eval_freq);
+        env_steps > num_seed_steps && env_steps / eval_freq > evaluated_through
+    }
 }
 
 /// The standard normal quantile of a two-sided 95 % interval.
@@ -607,6 +616,27 @@ mod tests {
         // Seen again (more episodes): not new, and the recorded time stays.
         assert!(t.update(&[point(3, 3000, 12, 0.3)], 3.0).is_empty());
         assert_eq!(t.evals()[0].wall_s, 2.0);
+    }
+
+    #[test]
+    fn the_final_policy_is_awaited_only_when_it_passed_an_eval_point_not_yet_evaluated() {
+        let mut t = EvalTracker::new(1, &[]);
+        // No eval yet: due once past the seed steps and the first multiple.
+        assert!(
+            !t.final_eval_pending(900, 1000, 500),
+            "before the first point"
+        );
+        assert!(
+            !t.final_eval_pending(1500, 1000, 2000),
+            "inside the seed steps"
+        );
+        assert!(t.final_eval_pending(1000, 1000, 500));
+        t.update(&[point(40, 1008, 5, 0.0)], 1.0);
+        // 1008 covers the point 1000: a final policy at 1999 passed no new one; at 2000 it did.
+        assert!(!t.final_eval_pending(1999, 1000, 500));
+        assert!(t.final_eval_pending(2000, 1000, 500));
+        t.update(&[point(80, 2000, 5, 0.5)], 2.0);
+        assert!(!t.final_eval_pending(2000, 1000, 500), "already evaluated");
     }
 
     #[test]

@@ -243,8 +243,24 @@ impl Curriculum {
         }
     }
 
-    /// Reports an episode exactly once: a retried report that the server already applied is
-    /// acknowledged without change.
+    /// The learner's env steps at the publication of the newest policy whose evaluation is
+    /// complete (0: none), where a (re)started eval actor's schedule goes on from.
+    pub async fn last_complete_eval(&self) -> Result<u64> {
+        let result = retrying(&self.peer, "GetState", self.retry_for, || {
+            let mut c = self.client.clone();
+            async move { c.get_state(v1::GetStateRequest {}).await }
+        })
+        .await?;
+        match result {
+            Ok(state) => Ok(state.into_inner().last_complete_eval_env_steps),
+            Err(status) => bail!(
+                "GetState refused by the {}: {}",
+                self.peer,
+                status.message()
+            ),
+        }
+    }
+
     /// Sends a recorded eval episode; the name the dashboard serves it under.
     pub async fn put_video(&self, video: EvalVideo) -> Result<String> {
         let wire = v1::EvalVideo::from(video);
@@ -264,6 +280,8 @@ impl Curriculum {
         }
     }
 
+    /// Reports an episode exactly once: a retried report that the server already applied is
+    /// acknowledged without change.
     pub async fn report(&self, report: &EpisodeReport) -> Result<Reported> {
         let wire = v1::EpisodeReport::from(report.clone());
         let result = retrying(&self.peer, "Report", self.retry_for, || {

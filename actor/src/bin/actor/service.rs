@@ -504,6 +504,13 @@ async fn eval_loop(
     mut policy_rx: watch::Receiver<Option<Arc<v1::PolicyWeights>>>,
 ) -> Result<Stopped> {
     let mut schedule = EvalSchedule::from_config(&run.cfg);
+    // A resumed run, or this actor restarted: the points already evaluated are not evaluated again.
+    match run.curriculum.last_complete_eval().await {
+        Ok(env_steps) => schedule.go_on_after(env_steps),
+        Err(e) => tracing::warn!(
+            "{e:#}; evaluating from the first policy past a multiple of sac.eval_freq on"
+        ),
+    }
     let episodes = episodes_per_eval_actor(&run.cfg);
     let actor_id = rollout.settings().actor_id;
     let mut out = StepOutput::default();
