@@ -9,6 +9,7 @@
 use rfcl_core::config::RunConfig;
 
 pub use rfcl_core::config::episodes_per_eval;
+use rfcl_core::config::eval_point;
 
 /// This eval actor's share of an evaluation when `num_eval_actors` share it (rounded up, so the
 /// evaluation is never short).
@@ -52,10 +53,10 @@ impl EvalSchedule {
     /// when it is; evaluation points passed over (more than one multiple of `eval_freq` since the
     /// last evaluation) are counted in [`EvalSchedule::skipped`].
     pub fn due(&mut self, learner_env_steps: u64) -> bool {
-        if learner_env_steps <= self.num_seed_steps {
+        let Some(through) = eval_point(learner_env_steps, self.eval_freq, self.num_seed_steps)
+        else {
             return false;
-        }
-        let through = learner_env_steps / self.eval_freq;
+        };
         if through <= self.done_through {
             return false;
         }

@@ -16,29 +16,34 @@ pub fn running_mean(rates: &[f64]) -> Option<f64> {
         .then(|| rates[rates.len() - STOP_WINDOW..].iter().sum::<f64>() / STOP_WINDOW as f64)
 }
 
-/// Success-at-end rates of the complete evaluations (at least `episodes_needed` episodes), in
-/// env-step order (policy versions break ties).
-pub fn complete_rates(evals: &BTreeMap<u64, EvalAggregate>, episodes_needed: u64) -> Vec<f64> {
-    let mut complete: Vec<(u64, u64, f64)> = evals
+/// The complete evaluations: those with at least `episodes_needed` episodes (at least one).
+fn complete(
+    evals: &BTreeMap<u64, EvalAggregate>,
+    episodes_needed: u64,
+) -> impl Iterator<Item = (&u64, &EvalAggregate)> {
+    evals
         .iter()
-        .filter(|(_, e)| e.episodes >= episodes_needed.max(1))
+        .filter(move |(_, e)| e.episodes >= episodes_needed.max(1))
+}
+
+/// Success-at-end rates of the complete evaluations, in env-step order (policy versions break
+/// ties).
+pub fn complete_rates(evals: &BTreeMap<u64, EvalAggregate>, episodes_needed: u64) -> Vec<f64> {
+    let mut complete: Vec<(u64, u64, f64)> = complete(evals, episodes_needed)
         .map(|(v, e)| (e.env_steps, *v, e.success_at_end as f64 / e.episodes as f64))
         .collect();
     complete.sort_by_key(|&(steps, version, _)| (steps, version));
     complete.into_iter().map(|(_, _, rate)| rate).collect()
 }
 
-/// The learner's env steps at the publication of the newest policy whose evaluation is complete
-/// (at least `episodes_needed` episodes): where a (re)started eval actor's schedule goes on from
-/// (spec 5.7).
+/// The learner's env steps at the publication of the newest policy whose evaluation is complete:
+/// where a (re)started eval actor's schedule goes on from (spec 5.7).
 pub fn last_complete_env_steps(
     evals: &BTreeMap<u64, EvalAggregate>,
     episodes_needed: u64,
 ) -> Option<u64> {
-    evals
-        .values()
-        .filter(|e| e.episodes >= episodes_needed.max(1))
-        .map(|e| e.env_steps)
+    complete(evals, episodes_needed)
+        .map(|(_, e)| e.env_steps)
         .max()
 }
 

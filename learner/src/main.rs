@@ -90,6 +90,8 @@ struct Args {
 }
 
 fn main() -> ExitCode {
+    // Before any thread starts, so that every thread shares the one tuned arena.
+    rfcl_learner::runtime::tune_allocator();
     // A damaged demo file can crash libhdf5: read once in a child copy of this binary first.
     rfcl_runtime::isolated::serve_if_child(|file| {
         DemoSet::load(file).map(drop).map_err(Into::into)

@@ -7,6 +7,12 @@
 //!   the heap top eagerly, so each update faults its working set back in page by page: about 15-25 %
 //!   of an update's CPU time here. Raising `M_MMAP_THRESHOLD` to glibc's 32 MiB maximum and
 //!   `M_TRIM_THRESHOLD` to 1 GiB keeps that memory in the heap between updates.
+//!   One arena (`M_ARENA_MAX` 1) keeps it there for every thread: glibc gives other threads
+//!   arenas of 64 MiB heaps and unmaps a heap as soon as all its blocks are free, whatever the
+//!   trim threshold, so a member thread whose arena's first heap is fragmented faulted a fresh
+//!   heap in and unmapped it again at every update (about 20 times a second in a PickCube
+//!   run's stage 2, where the kernel's share of the learner's CPU time rose from 3 % to 14 %).
+//!   [`tune_allocator`] sets it first thing in `main`, before any other thread has an arena.
 //!
 //! Not settable from here: OpenMP's wait policy. libgomp reads `OMP_WAIT_POLICY` when it loads,
 //! before `main`; with more than one thread on cores that other processes also use, its spinning
@@ -31,15 +37,24 @@ pub fn configure_cpu(threads: i32) -> CpuRuntime {
     }
 }
 
+/// glibc's allocator settings for libtorch's blocks (see the module docs); true when applied.
+/// Call it first thing in `main`, before other threads start: the one-arena setting only stops
+/// arenas from being created, it does not take away those that threads already have.
+/// [`configure_cpu`] applies it again (harmless) for processes that start no threads first.
+pub fn tune_allocator() -> bool {
+    tune_glibc_malloc()
+}
+
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn tune_glibc_malloc() -> bool {
     const MMAP_THRESHOLD_MAX: libc::c_int = 32 << 20;
     const TRIM_THRESHOLD: libc::c_int = 1 << 30;
-    // SAFETY: mallopt only changes glibc's allocation thresholds; it takes no pointers and is
+    // SAFETY: mallopt only changes glibc's allocation settings; it takes no pointers and is
     // thread-safe (it takes the arena locks).
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX) == 1
             && libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1
+            && libc::mallopt(libc::M_ARENA_MAX, 1) == 1
     }
 }
 

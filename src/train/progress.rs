@@ -4,6 +4,7 @@
 //! curriculum server's state and the wall clock.
 use std::collections::BTreeMap;
 
+use rfcl_core::config::eval_point;
 use rfcl_core::final_counters::LearnerCounts;
 use rfcl_curriculum::dashboard::{DashboardView, DemoBar, EvalPoint, RefusedReports};
 use serde::{Deserialize, Serialize};
@@ -207,13 +208,12 @@ impl EvalTracker {
         self.evals().pop()
     }
 
-    /// Whether an evaluation of the final policy, published at `env_steps`, is still to come: the
-    /// eval actors evaluate the first policy at or past each multiple of `eval_freq` once past the
-    /// seed steps (spec 5.7), and no complete evaluation is of that multiple yet.
+    /// Whether an evaluation of the final policy, published at `env_steps`, is still to come: its
+    /// evaluation point (spec 5.7) is past the newest complete evaluation's.
     pub fn final_eval_pending(&self, env_steps: u64, eval_freq: u64, num_seed_steps: u64) -> bool {
-        let eval_freq = eval_freq.max(1);
-        let evaluated_through = self.last().map_or(0, |e| e.env_steps / eval_freq);
-        env_steps > num_seed_steps && env_steps / eval_freq > evaluated_through
+        let point = |steps| eval_point(steps, eval_freq, num_seed_steps);
+        let evaluated = self.last().and_then(|e| point(e.env_steps)).unwrap_or(0);
+        point(env_steps).is_some_and(|p| p > evaluated)
     }
 }
 

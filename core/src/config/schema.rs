@@ -429,6 +429,14 @@ pub fn episodes_per_eval(cfg: &RunConfig) -> u64 {
     (u64::from(cfg.eval_env.num_envs) * cfg.sac.eval_steps / u64::from(horizon)).max(10)
 }
 
+/// The evaluation point (spec 5.7) a policy published at `env_steps` falls in: the number of
+/// multiples of `eval_freq` its env steps passed, or `None` inside the first `num_seed_steps`,
+/// where nothing is evaluated. A policy is evaluated when its point is past the last evaluated
+/// one's.
+pub fn eval_point(env_steps: u64, eval_freq: u64, num_seed_steps: u64) -> Option<u64> {
+    (env_steps > num_seed_steps).then(|| env_steps / eval_freq.max(1))
+}
+
 impl LearnerConfig {
     /// The learner's thread count: `flag` (`learner --threads`, `rfcl train --learner-threads`)
     /// when given, else `learner.threads`, else `cores - 1`, at least 1.
@@ -676,5 +684,26 @@ mod tests {
             ..LearnerConfig::default()
         };
         assert_eq!(ops.thread_split(3), (3, 1));
+    }
+
+    /// Every 20,000 env steps past 5,000 seed steps: 4,999 and 5,000 are seed steps; 19,999 is in
+    /// point 0 (nothing passed), 20,000 and 39,999 in point 1, 40,000 in point 2.
+    #[test]
+    fn eval_points_count_the_multiples_passed_after_the_seed_steps() {
+        let point = |steps| eval_point(steps, 20_000, 5_000);
+        assert_eq!(point(4_999), None);
+        assert_eq!(point(5_000), None);
+        assert_eq!(point(19_999), Some(0));
+        assert_eq!(point(20_000), Some(1));
+        assert_eq!(point(39_999), Some(1));
+        assert_eq!(point(40_000), Some(2));
+        // A seed phase longer than the period: the first point after it is the multiples passed.
+        assert_eq!(eval_point(30_000, 20_000, 30_000), None);
+        assert_eq!(eval_point(30_001, 20_000, 30_000), Some(1));
+        assert_eq!(
+            eval_point(7, 0, 0),
+            Some(7),
+            "a zero period counts every step"
+        );
     }
 }
