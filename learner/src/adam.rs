@@ -298,7 +298,10 @@ mod tests {
         let close = |got: f64, want: f64| (got - want).abs() < 1e-9;
         assert!(close(m[0], 0.05) && close(v[0], 0.00025), "{m:?} {v:?}");
         assert!(close(m[1], 0.08) && close(v[1], 0.01099), "{m:?} {v:?}");
-        assert!(close(p[0], 0.900000002) && close(p[1], 1.975868121), "{p:?}");
+        assert!(
+            close(p[0], 0.900000002) && close(p[1], 1.975868121),
+            "{p:?}"
+        );
     }
 
     /// The one pass and the chain of libtorch ops take the same step: a CUDA-less stand-in for the
