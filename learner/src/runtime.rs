@@ -33,34 +33,32 @@ pub fn configure_cpu(threads: i32) -> CpuRuntime {
     tch::set_num_threads(threads);
     CpuRuntime {
         threads: tch::get_num_threads(),
-        allocator_tuned: tune_glibc_malloc(),
+        allocator_tuned: tune_allocator(),
     }
 }
 
-/// glibc's allocator settings for libtorch's blocks (see the module docs); true when applied.
-/// Call it first thing in `main`, before other threads start: the one-arena setting only stops
-/// arenas from being created, it does not take away those that threads already have.
-/// [`configure_cpu`] applies it again (harmless) for processes that start no threads first.
+/// glibc's allocator settings for libtorch's blocks (see the module docs); true when applied,
+/// false on other C libraries. Call it first thing in `main`, before other threads start: the
+/// one-arena setting only stops arenas from being created, it does not take away those that
+/// threads already have. [`configure_cpu`] applies it again (harmless) for processes that start
+/// no threads first.
 pub fn tune_allocator() -> bool {
-    tune_glibc_malloc()
-}
-
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn tune_glibc_malloc() -> bool {
-    const MMAP_THRESHOLD_MAX: libc::c_int = 32 << 20;
-    const TRIM_THRESHOLD: libc::c_int = 1 << 30;
-    // SAFETY: mallopt only changes glibc's allocation settings; it takes no pointers and is
-    // thread-safe (it takes the arena locks).
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX) == 1
-            && libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1
-            && libc::mallopt(libc::M_ARENA_MAX, 1) == 1
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        const MMAP_THRESHOLD_MAX: libc::c_int = 32 << 20;
+        const TRIM_THRESHOLD: libc::c_int = 1 << 30;
+        // SAFETY: mallopt only changes glibc's allocation settings; it takes no pointers and is
+        // thread-safe (it takes the arena locks).
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX) == 1
+                && libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1
+                && libc::mallopt(libc::M_ARENA_MAX, 1) == 1
+        }
     }
-}
-
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-fn tune_glibc_malloc() -> bool {
-    false
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    {
+        false
+    }
 }
 
 #[cfg(test)]
