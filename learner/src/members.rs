@@ -11,9 +11,10 @@
 //! * per-row work (the critic's regression target, the actor's loss and gradients) splits the
 //!   minibatch's rows, one range per thread ([`MemberThreads::by_rows`]).
 //!
-//! The threads ([`run_on_threads`]) take jobs from a shared queue until none is left. With one
-//! thread, the same jobs run on the calling thread (one shard of all members, one range of all
-//! rows), which is also how CUDA runs them.
+//! The threads ([`run_on_threads`]: the calling one and helpers kept for the process) take jobs
+//! from a shared queue until none is left. With one thread, the same jobs run on the calling
+//! thread (one shard of all members, one range of all rows), which is also how CUDA runs them.
+use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 
@@ -162,9 +163,9 @@ pub fn shard_ranges(members: i64, shards: usize) -> Vec<(i64, i64)> {
         .collect()
 }
 
-/// Runs `work` on every job with `threads` threads, the calling one and `threads − 1` scoped
-/// threads with single-threaded libtorch ops, each taking the next job from a shared queue until
-/// none is left; results in job order, whoever ran them. A panic in a job is re-raised.
+/// Runs `work` on every job with `threads` threads, the calling one and `threads − 1` helpers from
+/// [`helper_pool`], each taking the next job from a shared queue until none is left; results in
+/// job order, whoever ran them. A panic in a job is re-raised.
 fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, threads: usize, work: fn(J) -> T) -> Vec<T> {
     let count = jobs.len();
     let queue: Vec<Mutex<Option<J>>> = jobs.into_iter().map(|j| Mutex::new(Some(j))).collect();
@@ -182,26 +183,41 @@ fn run_on_threads<J: Send, T: Send>(jobs: Vec<J>, threads: usize, work: fn(J) ->
             .expect("each job taken once");
         *results[i].lock().expect("result slot") = Some(work(job));
     };
-    std::thread::scope(|scope| {
-        let helpers: Vec<_> = (1..threads.min(count))
-            .map(|_| {
-                scope.spawn(|| {
-                    tch::set_num_threads(1);
-                    drain()
-                })
-            })
-            .collect();
+    let helpers = threads.min(count).saturating_sub(1);
+    if helpers == 0 {
         drain();
-        for helper in helpers {
-            helper
-                .join()
-                .unwrap_or_else(|e| std::panic::resume_unwind(e));
-        }
-    });
+    } else {
+        let drain = &drain;
+        // The calling thread drains too and then waits (blocked, not spinning) for the helpers.
+        helper_pool(helpers).in_place_scope(|scope| {
+            for _ in 0..helpers {
+                scope.spawn(move |_| drain());
+            }
+            drain();
+        });
+    }
     results
         .into_iter()
         .map(|r| r.into_inner().expect("result slot").expect("every job ran"))
         .collect()
+}
+
+/// `helpers` threads with single-threaded libtorch ops, started on first use and kept for the
+/// process (one pool per size). Threads started per job, tens of times a second in a run, each
+/// faulted a fresh stack in and set up libtorch's and MKL's per-thread state again, and MKL's
+/// buffers were freed at every thread's exit.
+fn helper_pool(helpers: usize) -> &'static rayon::ThreadPool {
+    static POOLS: Mutex<BTreeMap<usize, &'static rayon::ThreadPool>> = Mutex::new(BTreeMap::new());
+    let mut pools = POOLS.lock().unwrap_or_else(|e| e.into_inner());
+    pools.entry(helpers).or_insert_with(|| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(helpers)
+            .thread_name(|i| format!("learner-member-{}", i + 1))
+            .start_handler(|_| tch::set_num_threads(1))
+            .build()
+            .unwrap_or_else(|e| panic!("could not start {helpers} member threads: {e}"));
+        Box::leak(Box::new(pool))
+    })
 }
 
 /// One shard's share of a critic update (see [`MemberThreads::critic_update`]).
@@ -270,5 +286,34 @@ mod tests {
         let cuda = MemberThreads::per_thread(4, 10, Device::Cuda(0));
         assert_eq!(cuda.threads(), 1);
         assert!(!cuda.is_parallel());
+    }
+
+    #[test]
+    fn helper_threads_are_started_once_and_kept() {
+        use std::sync::{Arc, Barrier};
+        use std::thread::ThreadId;
+        // Two jobs that wait for each other: each of the two threads runs exactly one.
+        fn meet(barrier: Arc<Barrier>) -> (ThreadId, i32) {
+            barrier.wait();
+            (std::thread::current().id(), tch::get_num_threads())
+        }
+        let helper = || {
+            let barrier = Arc::new(Barrier::new(2));
+            let ran = run_on_threads(vec![barrier.clone(), barrier], 2, meet);
+            let caller = std::thread::current().id();
+            assert!(
+                ran.iter().any(|(id, _)| *id == caller),
+                "the caller works too"
+            );
+            *ran.iter()
+                .find(|(id, _)| *id != caller)
+                .expect("a helper ran the other job")
+        };
+        let (first, libtorch_threads) = helper();
+        assert_eq!(
+            libtorch_threads, 1,
+            "helpers run single-threaded libtorch ops"
+        );
+        assert_eq!(helper().0, first, "the next call reuses the helper thread");
     }
 }
