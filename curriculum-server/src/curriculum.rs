@@ -11,7 +11,6 @@ use crate::difficulty::Difficulty;
 use crate::forward::{Forward, LevelSource};
 use crate::reverse::{DemoMeta, ReportEffect, Reverse};
 use crate::stage::{ReplanError, Stage, StageChange, StageMachine};
-use rfcl_core::config::StagePlan;
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum CurriculumError {
@@ -34,6 +33,27 @@ pub enum CurriculumError {
     Finished,
     #[error(transparent)]
     Replan(#[from] ReplanError),
+    #[error(
+        "the config changes {} since the run's snapshot, but {why}; resume with the values in the \
+         run's config.yml, or start a new run for the new ones",
+        changes.join(", ")
+    )]
+    ChangedOnResume {
+        changes: Vec<String>,
+        why: &'static str,
+    },
+}
+
+/// What [`Curriculum::resume_under`] changed.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Resumed {
+    /// Set when the new stage plan moved the run on (a `stage_1_only` run into stage 2).
+    pub stage_change: Option<StageChange>,
+    /// `forward.<field>: old -> new` for each forward option taken over from the new config.
+    pub forward_adopted: Vec<String>,
+    /// `reverse.<field>: old -> new` for each reverse option that changed after stage 1 ended:
+    /// without effect, since the reverse curriculum is not used again.
+    pub reverse_ignored: Vec<String>,
 }
 
 /// Where an episode starts.
@@ -212,17 +232,76 @@ impl Curriculum {
         self.stages.finish(env_steps)
     }
 
-    /// Brings a restored curriculum in line with the stage plan of the config the run resumes
-    /// under ([`StageMachine::replan`]).
-    pub fn replan(
+    /// Brings a restored curriculum in line with the config the run resumes under: its stage plan
+    /// ([`StageMachine::replan`]) and its curriculum options. A forward curriculum that has not
+    /// begun is rebuilt under the new `forward` options (a stage-1 checkpoint can go on into
+    /// stage 2 under several variants). Once stage 2 has begun its scores and staleness come
+    /// from the old options, so changing them is refused, as is changing `reverse` in stage 1.
+    /// After stage 1 the reverse curriculum is history: changed `reverse` options are reported,
+    /// not applied. Nothing changes when an error is returned.
+    pub fn resume_under(
         &mut self,
-        plan: StagePlan,
+        config: &RunConfig,
+        demos: &[DemoMeta],
         env_steps: u64,
-    ) -> Result<Option<StageChange>, CurriculumError> {
-        Ok(self.stages.replan(plan, env_steps)?)
+    ) -> Result<Resumed, CurriculumError> {
+        let forward = config.forward_curriculum();
+        let forward_changes = changed_fields("forward", self.forward.config(), &forward);
+        let reverse_changes = changed_fields("reverse", self.reverse.config(), &config.reverse);
+        if !forward_changes.is_empty() && self.stages.forward_started() {
+            return Err(CurriculumError::ChangedOnResume {
+                changes: forward_changes,
+                why: "stage 2 has begun and its level scores were built under the old values",
+            });
+        }
+        if !reverse_changes.is_empty() && self.stages.stage() == Stage::Reverse {
+            return Err(CurriculumError::ChangedOnResume {
+                changes: reverse_changes,
+                why: "the run is in stage 1 and its reverse curriculum was built under the old \
+                      values",
+            });
+        }
+        let rebuilt = if forward_changes.is_empty() {
+            None
+        } else {
+            Some(Forward::new(forward, demos)?)
+        };
+        let mut stages = self.stages.clone();
+        let stage_change = stages.replan(
+            config
+                .train
+                .stage_plan()
+                .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))?,
+            env_steps,
+        )?;
+        self.stages = stages;
+        if let Some(rebuilt) = rebuilt {
+            self.forward = rebuilt;
+        }
+        Ok(Resumed {
+            stage_change,
+            forward_adopted: forward_changes,
+            reverse_ignored: reverse_changes,
+        })
     }
 
     pub fn stages(&self) -> &StageMachine {
         &self.stages
     }
+}
+
+/// `section.field: old -> new` for every top-level field of two configs of one type that differs.
+fn changed_fields<T: Serialize>(section: &str, old: &T, new: &T) -> Vec<String> {
+    let as_object = |config: &T| match serde_json::to_value(config) {
+        Ok(serde_json::Value::Object(fields)) => fields,
+        _ => unreachable!("curriculum configs serialise to JSON objects"),
+    };
+    let (old, new) = (as_object(old), as_object(new));
+    old.iter()
+        .filter(|(field, value)| new.get(*field) != Some(*value))
+        .map(|(field, value)| {
+            let now = new.get(field).cloned().unwrap_or(serde_json::Value::Null);
+            format!("{section}.{field}: {value} -> {now}")
+        })
+        .collect()
 }

@@ -19,7 +19,8 @@ pub mod stage;
 pub mod stop;
 
 pub use curriculum::{
-    Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, EpisodeOutcome, ReportOutcome,
+    Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, EpisodeOutcome,
+    ReportOutcome, Resumed,
 };
 pub use difficulty::{DemoAssessment, DemoRecord, Difficulty};
 pub use forward::{Forward, Level, LevelSource};

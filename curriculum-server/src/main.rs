@@ -94,13 +94,24 @@ async fn run(args: Args) -> Result<()> {
     let snapshot_path = snapshot::snapshot_path(&run_dir);
     let state = if args.resume.is_some() || snapshot_path.exists() {
         let mut state = snapshot::load(&snapshot_path, &cfg.name)?;
-        let plan = cfg.train.stage_plan()?;
         let env_steps = state.stats.env_steps;
-        if let Some(change) = state
+        let resumed = state
             .curriculum
-            .replan(plan, env_steps)
-            .with_context(|| format!("resuming the run in {}", run_dir.display()))?
-        {
+            .resume_under(&cfg, &demo_metas(&demos), env_steps)
+            .with_context(|| format!("resuming the run in {}", run_dir.display()))?;
+        if !resumed.forward_adopted.is_empty() {
+            tracing::info!(
+                changes = %resumed.forward_adopted.join(", "),
+                "stage 2 has not begun: its forward curriculum is rebuilt under the config's options"
+            );
+        }
+        if !resumed.reverse_ignored.is_empty() {
+            tracing::warn!(
+                changes = %resumed.reverse_ignored.join(", "),
+                "stage 1 has ended: changed reverse-curriculum options have no effect"
+            );
+        }
+        if let Some(change) = resumed.stage_change {
             tracing::info!(
                 from = ?change.from,
                 to = ?change.to,

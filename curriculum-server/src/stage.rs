@@ -102,6 +102,11 @@ impl StageMachine {
         self.stage
     }
 
+    /// Whether stage 2 has begun: the forward curriculum has handed out levels (or could have).
+    pub fn forward_started(&self) -> bool {
+        self.stage == Stage::Forward || self.finished_in == Some(Stage::Forward)
+    }
+
     /// Where the run stands, all of it at once.
     pub fn status(&self) -> StageStatus {
         StageStatus {
@@ -160,8 +165,7 @@ impl StageMachine {
         // Snapshots from before `finished_in` could only finish at the end of stage 1.
         let finished_in = self.finished_in.unwrap_or(Stage::Reverse);
         let in_stage_1 = self.stage == Stage::Reverse;
-        let past_stage_1 = self.stage == Stage::Forward
-            || (self.stage == Stage::Finished && finished_in == Stage::Forward);
+        let past_stage_1 = self.forward_started();
         match plan {
             StagePlan::ForwardOnly if in_stage_1 => Err(ReplanError::ForwardOnlyInStage1),
             StagePlan::ReverseOnly if past_stage_1 => Err(ReplanError::Stage1OnlyInStage2),

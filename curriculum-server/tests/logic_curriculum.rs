@@ -3,7 +3,7 @@
 use rfcl_core::config::RunConfig;
 use rfcl_curriculum::{
     Applied, AssignmentKind, Curriculum, CurriculumError, DemoMeta, EpisodeOutcome, LevelSource,
-    Stage,
+    Resumed, Stage,
 };
 
 const SUCCESS: EpisodeOutcome = EpisodeOutcome {
@@ -193,4 +193,90 @@ fn rlpd_mode_hands_out_only_seeds_uniformly_and_reports_move_nothing() {
         "{counts:?}"
     );
     assert_eq!(curriculum.stages().stage(), Stage::Forward);
+}
+
+#[test]
+fn a_stage_1_checkpoint_goes_on_into_stage_2_under_new_forward_options() {
+    let mut stage_1_only = config();
+    stage_1_only.train.stage_1_only = true;
+    let mut curriculum = Curriculum::new(&stage_1_only, &demos(2)).unwrap();
+    solve_stage_1(&mut curriculum);
+    assert_eq!(curriculum.forward().levels().len(), 12);
+
+    let mut variant = config();
+    variant.forward.include_demo_starts = false;
+    let resumed = curriculum.resume_under(&variant, &demos(2), 500).unwrap();
+    assert_eq!(
+        resumed.forward_adopted,
+        ["forward.include_demo_starts: true -> false"]
+    );
+    assert!(resumed.reverse_ignored.is_empty());
+    assert_eq!(
+        resumed.stage_change.map(|c| (c.from, c.to)),
+        Some((Stage::Finished, Stage::Forward))
+    );
+    // Only the 10 seeds are levels now.
+    assert_eq!(curriculum.forward().levels().len(), 10);
+    for _ in 0..50 {
+        let lease = curriculum.acquire().unwrap();
+        assert!(
+            matches!(
+                lease.kind,
+                AssignmentKind::Level {
+                    source: LevelSource::Seed(_),
+                    ..
+                }
+            ),
+            "{lease:?}"
+        );
+    }
+}
+
+#[test]
+fn forward_options_cannot_change_once_stage_2_has_begun() {
+    let mut curriculum = Curriculum::new(&config(), &demos(2)).unwrap();
+    solve_stage_1(&mut curriculum);
+    let before = curriculum.clone();
+    let mut variant = config();
+    variant.forward.staleness_coef = 0.5;
+    let Err(err) = curriculum.resume_under(&variant, &demos(2), 500) else {
+        panic!("a forward change in stage 2 was taken");
+    };
+    assert_eq!(
+        err,
+        CurriculumError::ChangedOnResume {
+            changes: vec!["forward.staleness_coef: 0.1 -> 0.5".into()],
+            why: "stage 2 has begun and its level scores were built under the old values",
+        }
+    );
+    assert!(err
+        .to_string()
+        .contains("forward.staleness_coef: 0.1 -> 0.5"));
+    assert_eq!(curriculum, before);
+}
+
+#[test]
+fn reverse_options_are_refused_in_stage_1_and_reported_after_it() {
+    let mut curriculum = Curriculum::new(&config(), &demos(2)).unwrap();
+    let mut variant = config();
+    variant.reverse.reverse_step_size = 8;
+    let Err(CurriculumError::ChangedOnResume { changes, .. }) =
+        curriculum.resume_under(&variant, &demos(2), 10)
+    else {
+        panic!("a reverse change in stage 1 was taken");
+    };
+    assert_eq!(changes, ["reverse.reverse_step_size: 4 -> 8"]);
+    // Unchanged options resume as before.
+    assert_eq!(
+        curriculum.resume_under(&config(), &demos(2), 10),
+        Ok(Resumed::default())
+    );
+
+    solve_stage_1(&mut curriculum);
+    let resumed = curriculum.resume_under(&variant, &demos(2), 500).unwrap();
+    assert_eq!(
+        resumed.reverse_ignored,
+        ["reverse.reverse_step_size: 4 -> 8"]
+    );
+    assert_eq!(curriculum.reverse().config().reverse_step_size, 4);
 }

@@ -888,3 +888,24 @@ async fn a_run_in_stage_1_cannot_be_resumed_forward_only() {
         "{stderr}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_in_stage_1_refuses_changed_reverse_options_on_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let files = RunFiles::write(dir.path(), 30.0);
+    let mut server = ServerProcess::start(&files.args("--run-dir", &[]));
+    assert_eq!(state_view(&mut server.client().await).await.stage, 1);
+    assert!(server.sigterm().success());
+    let out = run_server(
+        &files.args("--resume", &["reverse.reverse_step_size=8"]),
+        Some(TEST_TOKEN),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(files.run_dir.to_str().unwrap())
+            && stderr.contains("reverse.reverse_step_size: 4 -> 8")
+            && stderr.contains("stage 1"),
+        "{stderr}"
+    );
+}
