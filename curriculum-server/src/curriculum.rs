@@ -3,7 +3,7 @@
 //! whole state, random stream included, serialises, so a restored snapshot continues exactly.
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rfcl_core::config::RunConfig;
+use rfcl_core::config::{RunConfig, StagePlan};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -122,12 +122,7 @@ impl Curriculum {
         Ok(Self {
             reverse: Reverse::new(config.reverse.clone(), demos, horizon)?,
             forward: Forward::new(config.forward_curriculum(), demos)?,
-            stages: StageMachine::new(
-                config
-                    .train
-                    .stage_plan()
-                    .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))?,
-            ),
+            stages: StageMachine::new(stage_plan(config)?),
             difficulty: Difficulty::default(),
             horizon,
             rng: ChaCha8Rng::seed_from_u64(config.seed),
@@ -266,15 +261,8 @@ impl Curriculum {
         } else {
             Some(Forward::new(forward, demos)?)
         };
-        let mut stages = self.stages.clone();
-        let stage_change = stages.replan(
-            config
-                .train
-                .stage_plan()
-                .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))?,
-            env_steps,
-        )?;
-        self.stages = stages;
+        // `replan` leaves the machine as it was when it refuses.
+        let stage_change = self.stages.replan(stage_plan(config)?, env_steps)?;
         if let Some(rebuilt) = rebuilt {
             self.forward = rebuilt;
         }
@@ -288,6 +276,13 @@ impl Curriculum {
     pub fn stages(&self) -> &StageMachine {
         &self.stages
     }
+}
+
+fn stage_plan(config: &RunConfig) -> Result<StagePlan, CurriculumError> {
+    config
+        .train
+        .stage_plan()
+        .map_err(|e| CurriculumError::InvalidConfig(e.to_string()))
 }
 
 /// `section.field: old -> new` for every top-level field of two configs of one type that differs.

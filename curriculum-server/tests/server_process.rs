@@ -868,44 +868,38 @@ async fn a_stage_1_only_run_resumed_without_it_goes_on_into_stage_2() {
     assert!(ack.applied);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_run_in_stage_1_cannot_be_resumed_forward_only() {
+/// Stops a run in stage 1, resumes it with `change` and asserts that the server refuses, naming
+/// the run directory and each of `expected`.
+async fn a_stage_1_run_refuses_to_resume_with(change: &str, expected: &[&str]) {
     let dir = tempfile::tempdir().unwrap();
     let files = RunFiles::write(dir.path(), 30.0);
     let mut server = ServerProcess::start(&files.args("--run-dir", &[]));
     assert_eq!(state_view(&mut server.client().await).await.stage, 1);
     assert!(server.sigterm().success());
-    let out = run_server(
-        &files.args("--resume", &["train.stage_2_only=true"]),
-        Some(TEST_TOKEN),
-    );
+    let out = run_server(&files.args("--resume", &[change]), Some(TEST_TOKEN));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{stderr}");
     assert!(
         stderr.contains(files.run_dir.to_str().unwrap())
-            && stderr.contains("still in stage 1")
-            && stderr.contains("train.stage_2_only"),
+            && expected.iter().all(|part| stderr.contains(part)),
         "{stderr}"
     );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_in_stage_1_cannot_be_resumed_forward_only() {
+    a_stage_1_run_refuses_to_resume_with(
+        "train.stage_2_only=true",
+        &["still in stage 1", "train.stage_2_only"],
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_run_in_stage_1_refuses_changed_reverse_options_on_resume() {
-    let dir = tempfile::tempdir().unwrap();
-    let files = RunFiles::write(dir.path(), 30.0);
-    let mut server = ServerProcess::start(&files.args("--run-dir", &[]));
-    assert_eq!(state_view(&mut server.client().await).await.stage, 1);
-    assert!(server.sigterm().success());
-    let out = run_server(
-        &files.args("--resume", &["reverse.reverse_step_size=8"]),
-        Some(TEST_TOKEN),
-    );
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "{stderr}");
-    assert!(
-        stderr.contains(files.run_dir.to_str().unwrap())
-            && stderr.contains("reverse.reverse_step_size: 4 -> 8")
-            && stderr.contains("stage 1"),
-        "{stderr}"
-    );
+    a_stage_1_run_refuses_to_resume_with(
+        "reverse.reverse_step_size=8",
+        &["reverse.reverse_step_size: 4 -> 8", "stage 1"],
+    )
+    .await;
 }
