@@ -54,6 +54,9 @@ pub struct Resumed {
     /// `reverse.<field>: old -> new` for each reverse option that changed after stage 1 ended:
     /// without effect, since the reverse curriculum is not used again.
     pub reverse_ignored: Vec<String>,
+    /// `env.max_episode_steps: old -> new` when the horizon changed after stage 1 ended: stage-2
+    /// episodes end at the new one.
+    pub horizon_adopted: Option<String>,
 }
 
 /// Where an episode starts.
@@ -231,9 +234,11 @@ impl Curriculum {
     /// ([`StageMachine::replan`]) and its curriculum options. A forward curriculum that has not
     /// begun is rebuilt under the new `forward` options (a stage-1 checkpoint can go on into
     /// stage 2 under several variants). Once stage 2 has begun its scores and staleness come
-    /// from the old options, so changing them is refused, as is changing `reverse` in stage 1.
-    /// After stage 1 the reverse curriculum is history: changed `reverse` options are reported,
-    /// not applied. Nothing changes when an error is returned.
+    /// from the old options, so changing them is refused, as is changing `reverse` or the env
+    /// horizon in stage 1 (every stage-1 time limit is capped by it). After stage 1 the reverse
+    /// curriculum is history: changed `reverse` options are reported, not applied, and a new
+    /// horizon is the time limit of the stage-2 episodes from now on. Nothing changes when an
+    /// error is returned.
     pub fn resume_under(
         &mut self,
         config: &RunConfig,
@@ -243,15 +248,20 @@ impl Curriculum {
         let forward = config.forward_curriculum();
         let forward_changes = changed_fields("forward", self.forward.config(), &forward);
         let reverse_changes = changed_fields("reverse", self.reverse.config(), &config.reverse);
+        let horizon = config.env.max_episode_steps;
+        let horizon_change = (horizon != self.horizon)
+            .then(|| format!("env.max_episode_steps: {} -> {horizon}", self.horizon));
         if !forward_changes.is_empty() && self.stages.forward_started() {
             return Err(CurriculumError::ChangedOnResume {
                 changes: forward_changes,
                 why: "stage 2 has begun and its level scores were built under the old values",
             });
         }
-        if !reverse_changes.is_empty() && self.stages.stage() == Stage::Reverse {
+        if self.stages.stage() == Stage::Reverse
+            && (!reverse_changes.is_empty() || horizon_change.is_some())
+        {
             return Err(CurriculumError::ChangedOnResume {
-                changes: reverse_changes,
+                changes: reverse_changes.into_iter().chain(horizon_change).collect(),
                 why: "the run is in stage 1 and its reverse curriculum was built under the old \
                       values",
             });
@@ -266,10 +276,12 @@ impl Curriculum {
         if let Some(rebuilt) = rebuilt {
             self.forward = rebuilt;
         }
+        self.horizon = horizon;
         Ok(Resumed {
             stage_change,
             forward_adopted: forward_changes,
             reverse_ignored: reverse_changes,
+            horizon_adopted: horizon_change,
         })
     }
 

@@ -111,6 +111,12 @@ async fn run(args: Args) -> Result<()> {
                 "stage 1 has ended: changed reverse-curriculum options have no effect"
             );
         }
+        if let Some(change) = &resumed.horizon_adopted {
+            tracing::info!(
+                change = %change,
+                "stage 1 has ended: stage-2 episodes end at the config's horizon"
+            );
+        }
         if let Some(change) = resumed.stage_change {
             tracing::info!(
                 from = ?change.from,

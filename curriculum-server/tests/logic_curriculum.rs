@@ -280,3 +280,29 @@ fn reverse_options_are_refused_in_stage_1_and_reported_after_it() {
     );
     assert_eq!(curriculum.reverse().config().reverse_step_size, 4);
 }
+
+#[test]
+fn the_horizon_is_refused_in_stage_1_and_taken_after_it() {
+    let mut curriculum = Curriculum::new(&config(), &demos(2)).unwrap();
+    let old = config().env.max_episode_steps;
+    let mut longer = config();
+    longer.env.max_episode_steps = old * 2;
+    let Err(CurriculumError::ChangedOnResume { changes, .. }) =
+        curriculum.resume_under(&longer, &demos(2), 10)
+    else {
+        panic!("a new horizon in stage 1 was taken");
+    };
+    assert_eq!(
+        changes,
+        [format!("env.max_episode_steps: {old} -> {}", old * 2)]
+    );
+
+    solve_stage_1(&mut curriculum);
+    assert_eq!(curriculum.acquire().unwrap().time_limit, old);
+    let resumed = curriculum.resume_under(&longer, &demos(2), 500).unwrap();
+    assert_eq!(
+        resumed.horizon_adopted,
+        Some(format!("env.max_episode_steps: {old} -> {}", old * 2))
+    );
+    assert_eq!(curriculum.acquire().unwrap().time_limit, old * 2);
+}
