@@ -354,10 +354,7 @@ mod tests {
         assert_eq!(take(&mut t, 0, 0), Err(ReportRefusal::Unknown(0)));
         let next = t.granted_total() + 1;
         assert_eq!(take(&mut t, next, 0), Err(ReportRefusal::Unknown(next)));
-        assert_eq!(
-            serde_json::to_string(&t).unwrap().len() < 300,
-            true,
-            "no per-report memory"
-        );
+        let bytes = serde_json::to_string(&t).unwrap().len();
+        assert!(bytes < 300, "no per-report memory: {bytes} bytes");
     }
 }

@@ -485,8 +485,10 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_snapshot_follows_wall_time_once_reports_arrived() {
         let dir = tempfile::tempdir().unwrap();
-        let mut cfg = RunConfig::default();
-        cfg.name = "walltime".into();
+        let mut cfg = RunConfig {
+            name: "walltime".into(),
+            ..RunConfig::default()
+        };
         cfg.service.snapshot_every_s = 0.3;
         cfg.service.snapshot_every_reports = 1_000_000;
         let shared = shared(cfg);
