@@ -18,7 +18,6 @@ pooled successes with the 95 % Wilson interval) and draws the curves on one SVG.
 """
 
 import argparse
-import json
 from pathlib import Path
 
 import matplotlib
@@ -30,6 +29,7 @@ from pick_cube_vs_reference import (  # noqa: E402 (benches/ is the script's dir
     REFERENCE_260K_RANGE,
     REFERENCE_EVALS,
     REFERENCE_STAGE_1,
+    labelled_summary,
     wilson,
 )
 
@@ -76,21 +76,19 @@ def by_window(summary):
 
 
 def read_runs(specs, parser, flag):
+    """(label, its evals by window) of each `LABEL=SUMMARY.json`."""
     runs = []
     for spec in specs:
-        label, sep, path = spec.partition("=")
-        if not sep:
-            parser.error(f"{flag} {spec!r}: expected LABEL=SUMMARY.json")
-        summary = json.loads(Path(path).read_text())
+        label, summary = labelled_summary(spec, parser, flag)
         if not summary.get("stage_1_env_steps"):
-            parser.error(f"{flag} {spec!r}: {path} has no stage-1 end (stage_1_env_steps)")
-        runs.append((label, summary))
+            parser.error(f"{flag} {spec!r}: the summary has no stage-1 end (stage_1_env_steps)")
+        runs.append((label, by_window(summary)))
     return runs
 
 
 def pooled(runs, centre):
     """Successes and episodes of every run's eval in the window around `centre`."""
-    hits = [by_window(summary).get(centre) for _, summary in runs]
+    hits = [windows.get(centre) for _, windows in runs]
     return sum(h[1] for h in hits if h), sum(h[2] for h in hits if h)
 
 
@@ -115,9 +113,7 @@ def main():
         parser.error("give at least one --run")
     everything = preset + variants
 
-    centres = sorted(
-        {window_centre(after) for _, s in everything for after, _, _ in stage_2_evals(s)}
-    )
+    centres = sorted({c for _, windows in everything for c in windows})
     heads = "".join(f" {label} |" for label, _ in everything)
     print(
         "| after stage 1 (window) | official (one run) |"
@@ -133,8 +129,8 @@ def main():
         else:
             ref_text = f"{ref:.2f}"
         cells = ""
-        for _, summary in everything:
-            hit = by_window(summary).get(c)
+        for _, windows in everything:
+            hit = windows.get(c)
             cells += f" {hit[1] / hit[2]:.2f} (+{hit[0] / 1000:.0f}k) |" if hit else " - |"
         print(
             f"| {window_text(c)} | {ref_text} |{cells} {rate_text(*pooled(preset, c))} "
@@ -146,8 +142,8 @@ def main():
     ax.plot(ref_x, [REFERENCE_AFTER[x] for x in ref_x], "o-", color="tab:gray", linewidth=2,
             label="official JAX implementation")
     ax.vlines(260_000 - REFERENCE_STAGE_1, *REFERENCE_260K_RANGE, color="tab:gray")
-    for label, summary in everything:
-        points = sorted(by_window(summary).values())
+    for label, windows in everything:
+        points = sorted(windows.values())
         ax.plot([a for a, _, _ in points], [s / n for _, s, n in points], ".-", alpha=0.35,
                 linewidth=0.8, label=label)
     # The two pooled curves are drawn a little apart so that their intervals do not hide each other.

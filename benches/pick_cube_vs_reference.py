@@ -110,6 +110,14 @@ def stage_1_by_demo(summary):
     return rows
 
 
+def labelled_summary(spec, parser, flag):
+    """`LABEL=SUMMARY.json` given with `flag`: the label and the parsed summary."""
+    label, sep, path = spec.partition("=")
+    if not sep:
+        parser.error(f"{flag} {spec!r}: expected LABEL=SUMMARY.json")
+    return label, json.loads(Path(path).read_text())
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("run_dir", type=Path)
@@ -118,12 +126,7 @@ def main():
     parser.add_argument("--also", action="append", default=[], metavar="LABEL=SUMMARY.json")
     parser.add_argument("--label", default="rfcl", help="this run's name in the tables and plot")
     args = parser.parse_args()
-    others = []
-    for also in args.also:
-        label, sep, path = also.partition("=")
-        if not sep:
-            parser.error(f"--also {also!r}: expected LABEL=SUMMARY.json")
-        others.append((label, json.loads(Path(path).read_text())))
+    others = [labelled_summary(also, parser, "--also") for also in args.also]
     summary = json.loads((args.run_dir / "summary.json").read_text())
     with open(args.run_dir / "metrics.csv") as f:
         metrics = list(csv.DictReader(f))
