@@ -1,10 +1,12 @@
 //! `rfcl demos inspect --replay`: each demo checked in its simulator, with no run
-//! (rfcl_actor::replay): valid reset states, a faithful replay of its actions, a success at the end.
+//! (rfcl_actor::replay): states that restore exactly, steps that replay, a success at the end.
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use rfcl_actor::pointmaze::{self, PointMaze};
-use rfcl_actor::replay::{check_demo, STATE_TOLERANCE};
+use rfcl_actor::replay::{
+    check_demo, verdict, ORIENTATION_TOLERANCE, POSITION_TOLERANCE, RESTORE_TOLERANCE,
+};
 use rfcl_actor::Env;
 use rfcl_core::demo::DemoSet;
 
@@ -24,44 +26,29 @@ pub fn check(set: &DemoSet, config: Option<&Path>) -> Result<bool> {
             env_id.unwrap_or("unknown")
         ),
     };
-    println!("replay check (states within {STATE_TOLERANCE} of the demo's):");
+    println!(
+        "replay check: every state restores within {RESTORE_TOLERANCE:e}; one step from each \
+         state reaches the next with positions within {POSITION_TOLERANCE} and orientations within \
+         {ORIENTATION_TOLERANCE} rad (velocities reported, not judged) and its success flag; the \
+         last step ends in a success"
+    );
     let mut failed = 0;
     for (i, demo) in set.demos.iter().enumerate() {
         let c = check_demo(env.as_mut(), demo)
             .with_context(|| format!("replaying demo {i} (episode {})", demo.episode_id))?;
-        let mut problems = Vec::new();
-        if let Some((index, why)) = &c.invalid_state {
-            problems.push(format!("state {index} is not a valid reset state: {why}"));
-        }
-        if let Some(t) = c.first_divergence {
-            problems.push(format!(
-                "the replay leaves the demo's states at state {t} (max error {:.3e})",
-                c.max_state_error
-            ));
-        }
-        if c.success_mismatches > 0 {
-            problems.push(format!(
-                "{} success flags differ from the replay's",
-                c.success_mismatches
-            ));
-        }
-        if c.invalid_state.is_none() && !c.final_success {
-            problems.push("its final state is not a success".into());
-        }
-        if problems.is_empty() {
-            println!(
-                "  demo {i} (episode {}): ok ({} steps, max state error {:.1e}, success at the end)",
+        match verdict(&c, demo.len() + 1) {
+            Ok(measured) => println!(
+                "  demo {i} (episode {}): ok ({} steps; {measured})",
                 demo.episode_id,
                 demo.len(),
-                c.max_state_error
-            );
-        } else {
-            failed += 1;
-            println!(
-                "  demo {i} (episode {}): FAILED: {}",
-                demo.episode_id,
-                problems.join("; ")
-            );
+            ),
+            Err(problems) => {
+                failed += 1;
+                println!(
+                    "  demo {i} (episode {}): FAILED: {problems}",
+                    demo.episode_id
+                );
+            }
         }
     }
     println!(

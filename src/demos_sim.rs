@@ -11,6 +11,11 @@
 //! 3. the first N successful episodes with seed ≥ S are written to `--out` (+ its JSON sidecar) with
 //!    core's writer, which `rfcl demos inspect` and the services read.
 //!
+//! A seed that gives no demo (the planner finds no plan, or its plan fails, about 1 in 4 seeds of
+//! PegInsertionSide and PlugCharger; or the plan does not replay to a success in the run's control
+//! mode) is skipped and never written; the seeds skipped are counted and named on stderr
+//! ([`Failures`]), and the written demos' seeds are listed.
+//!
 //! Both tools run in a temporary directory (ManiSkill writes beside its input), with the venv's
 //! Python ([`python_program`]); their progress drives one progress bar, and when one fails the
 //! error carries the last lines of its output.
@@ -80,6 +85,7 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
     let tmp = temp_dir_near(out)?;
     let bar = bar(u64::from(skipped + num));
     let mut planned = skipped + num;
+    let mut failures = Failures::default();
     for attempt in 1..=ATTEMPTS {
         bar.set_position(0);
         bar.set_length(u64::from(planned));
@@ -109,13 +115,22 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
             .join(env)
             .join("motionplanning")
             .join("trajectory.h5");
+        let plans = planned_seeds(&raw)?;
         let converted = replay(&bar, &raw, u64::from(planned), tmp.path())?;
         let mut set = DemoSet::load(&converted)
             .with_context(|| format!("reading ManiSkill's replay {}", converted.display()))?;
         set.demos = from_seed(set.demos, seed);
+        let replayed: Vec<u64> = set
+            .demos
+            .iter()
+            .filter(|d| d.succeeded)
+            .filter_map(|d| d.reset.seed)
+            .collect();
+        failures.add(&plans, &replayed, seed);
         let ok = set.demos.iter().filter(|d| d.succeeded).count() as u32;
         if ok >= num {
             bar.finish_and_clear();
+            failures.report(env);
             return write_first(&set, num, out, "generated");
         }
         // Some plans did not survive the change of controller: plan more and try again.
@@ -128,10 +143,86 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
         planned = skipped + num + 2 * (num - ok);
     }
     bar.finish_and_clear();
+    failures.report(env);
     bail!(
         "after {ATTEMPTS} rounds of motion planning, fewer than {num} episodes of {env} replayed \
          successfully in {CONTROL_MODE}"
     )
+}
+
+/// The seeds that gave no demo, each counted once over all planning rounds (the planner starts
+/// at seed 0 every round, so a round repeats the earlier rounds' seeds).
+#[derive(Debug, Default, PartialEq)]
+struct Failures {
+    /// Seeds the planner tried and kept no episode of: no plan, or a plan that did not succeed.
+    plans: std::collections::BTreeSet<u64>,
+    /// Seeds whose successful plan did not replay to a success in [`CONTROL_MODE`].
+    replays: std::collections::BTreeSet<u64>,
+}
+
+impl Failures {
+    /// Adds one round: `planned` are the seeds of the planner's successful episodes (the seeds
+    /// below their largest that are missing failed), `replayed` those that replayed successfully.
+    /// Seeds below `first` were never asked for and are left out.
+    fn add(&mut self, planned: &[u64], replayed: &[u64], first: u64) {
+        let Some(&last) = planned.iter().max() else {
+            return;
+        };
+        self.plans
+            .extend((first..last).filter(|s| !planned.contains(s)));
+        self.replays.extend(
+            planned
+                .iter()
+                .filter(|&&s| s >= first && !replayed.contains(&s)),
+        );
+    }
+
+    /// One line per kind of failure, on stderr: a skipped seed is never written.
+    fn report(&self, env: &str) {
+        if !self.plans.is_empty() {
+            eprintln!(
+                "{env}: the motion planner gave no successful episode for {} seed(s) {:?}: skipped, not written",
+                self.plans.len(),
+                self.plans
+            );
+        }
+        if !self.replays.is_empty() {
+            eprintln!(
+                "{env}: {} planned episode(s) did not replay to a success in {CONTROL_MODE}, \
+                 seed(s) {:?}: skipped, not written",
+                self.replays.len(),
+                self.replays
+            );
+        }
+    }
+}
+
+/// The reset seeds of the episodes the planner kept, from the JSON sidecar beside `raw`.
+fn planned_seeds(raw: &Path) -> Result<Vec<u64>> {
+    let sidecar = DemoSet::sidecar_path(raw);
+    let text = std::fs::read_to_string(&sidecar)
+        .with_context(|| format!("reading the planner's sidecar {}", sidecar.display()))?;
+    let meta: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("{} is not JSON", sidecar.display()))?;
+    let episodes = meta["episodes"]
+        .as_array()
+        .map(Vec::as_slice)
+        .unwrap_or(&[]);
+    episodes
+        .iter()
+        .map(|e| {
+            e["reset_kwargs"]["seed"]
+                .as_u64()
+                .or_else(|| e["episode_seed"].as_u64())
+                .with_context(|| {
+                    format!(
+                        "{}: episode {} has no reset seed",
+                        sidecar.display(),
+                        e["episode_id"]
+                    )
+                })
+        })
+        .collect()
 }
 
 /// `rfcl demos convert IN --out OUT`: a ManiSkill3 trajectory file (any control and obs mode, with
@@ -240,13 +331,19 @@ fn write_first(set: &DemoSet, num: u32, out: &Path, verb: &str) -> Result<()> {
     }
     chosen.write(out)?;
     let lengths: Vec<usize> = chosen.demos.iter().map(|d| d.len()).collect();
+    let seeds: Vec<String> = chosen
+        .demos
+        .iter()
+        .map(|d| d.reset.seed.map_or("none".into(), |s| s.to_string()))
+        .collect();
     eprintln!(
         "{verb} {num} successful {} demos ({}, state observations) into {} (+ {}), lengths \
-         {lengths:?}",
+         {lengths:?}, seeds [{}]",
         chosen.env_id.as_deref().unwrap_or("?"),
         chosen.control_mode.as_deref().unwrap_or(CONTROL_MODE),
         out.display(),
-        DemoSet::sidecar_path(out).display()
+        DemoSet::sidecar_path(out).display(),
+        seeds.join(", ")
     );
     Ok(())
 }
@@ -386,6 +483,30 @@ mod tests {
         let replay = "Replaying traj_3:  43%|████▎     | 32/74 [00:00<00:00, 319.15step/s]";
         assert_eq!(progress(Tool::Replay, replay), Some(3));
         assert_eq!(progress(Tool::Replay, "Replayed 2 episodes"), None);
+    }
+
+    #[test]
+    fn failed_seeds_are_the_gaps_below_the_last_plan_and_the_plans_that_did_not_replay() {
+        let mut failures = Failures::default();
+        // Planned 0, 1, 3, 4, 7 (2, 5, 6 failed); 4 did not replay.
+        failures.add(&[0, 1, 3, 4, 7], &[0, 1, 3, 7], 0);
+        // A second round repeats them and goes on: 8 fails, 9 plans and replays.
+        failures.add(&[0, 1, 3, 4, 7, 9], &[0, 1, 3, 7, 9], 0);
+        assert_eq!(
+            failures.plans.iter().copied().collect::<Vec<_>>(),
+            [2, 5, 6, 8]
+        );
+        assert_eq!(failures.replays.iter().copied().collect::<Vec<_>>(), [4]);
+        // Seeds below --seed were never asked for.
+        let mut from_three = Failures::default();
+        from_three.add(&[0, 2, 4, 6], &[0, 2, 6], 3);
+        assert_eq!(from_three.plans.iter().copied().collect::<Vec<_>>(), [3, 5]);
+        assert_eq!(from_three.replays.iter().copied().collect::<Vec<_>>(), [4]);
+        assert_eq!(Failures::default(), {
+            let mut none = Failures::default();
+            none.add(&[], &[], 0);
+            none
+        });
     }
 
     #[test]

@@ -104,7 +104,7 @@ fn a_demo_with_an_unreachable_part_is_the_only_one_flagged_and_select_drops_it()
     let text = String::from_utf8_lossy(&out.stdout);
     assert_eq!(out.status.code(), Some(1), "{text}");
     assert!(
-        text.contains(&format!("(episode {bad_id}): FAILED: the replay leaves")),
+        text.contains(&format!("(episode {bad_id}): FAILED: one step from state")),
         "{text}"
     );
     assert!(text.contains("4 of 5 demos pass"), "{text}");

@@ -46,6 +46,28 @@ impl StateEntry {
     }
 }
 
+/// What a slice of the state vector measures ([`StateLayout::parts`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Quantity {
+    /// Positions in metres, joint positions, and the other configuration values a state holds
+    /// (MetaWorld's goal vector, PointMaze's collision flag).
+    Position,
+    /// A unit quaternion (w, x, y, z).
+    Orientation,
+    /// Linear, angular or joint velocities.
+    Velocity,
+    /// An opaque MS2 flat state, whose entries' kinds are unknown.
+    Value,
+}
+
+/// One slice of the state vector and what it measures, e.g. `actors/cube position`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StatePart {
+    pub name: String,
+    pub quantity: Quantity,
+    pub range: Range<usize>,
+}
+
 /// How a flat env-state vector splits into named parts, so that a simulator adapter can rebuild
 /// its state dict by name. Entries are contiguous and in order, starting at offset 0.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -102,6 +124,65 @@ impl StateLayout {
         self.get(name).and_then(|e| state.get(e.range()))
     }
 
+    /// The state vector split by what each slice measures, in layout order: an MS3 actor is a
+    /// position, an orientation and two velocities; an articulation its root's three and then
+    /// its joints' positions and velocities; a named field is a velocity when its name says so
+    /// (`qvel`, `*vel`), an orientation when it is a 4-value `*quat`, else a position; a flat MS2
+    /// state is one opaque value. The demo check judges each kind with its own tolerance
+    /// (docs/SUITES.md "Checking demos").
+    pub fn parts(&self) -> Vec<StatePart> {
+        let mut parts = Vec::new();
+        for e in &self.entries {
+            let mut push = |what: &str, quantity: Quantity, start: usize, len: usize| {
+                let name = if what.is_empty() {
+                    e.name.clone()
+                } else {
+                    format!("{} {what}", e.name)
+                };
+                let start = e.offset + start;
+                parts.push(StatePart {
+                    name,
+                    quantity,
+                    range: start..start + len,
+                });
+            };
+            match e.kind {
+                StateKind::Flat => push("", Quantity::Value, 0, e.len),
+                StateKind::Actor | StateKind::Articulation => {
+                    let root = if e.kind == StateKind::Actor {
+                        ""
+                    } else {
+                        "root "
+                    };
+                    push(&format!("{root}position"), Quantity::Position, 0, 3);
+                    push(&format!("{root}orientation"), Quantity::Orientation, 3, 4);
+                    push(&format!("{root}linear velocity"), Quantity::Velocity, 7, 3);
+                    push(
+                        &format!("{root}angular velocity"),
+                        Quantity::Velocity,
+                        10,
+                        3,
+                    );
+                    if let Some(dof) = e.dof().filter(|&d| d > 0) {
+                        push("qpos", Quantity::Position, StateKind::ROOT_LEN, dof);
+                        push("qvel", Quantity::Velocity, StateKind::ROOT_LEN + dof, dof);
+                    }
+                }
+                StateKind::Field => {
+                    let quantity = if e.name.ends_with("vel") {
+                        Quantity::Velocity
+                    } else if e.name.ends_with("quat") && e.len == 4 {
+                        Quantity::Orientation
+                    } else {
+                        Quantity::Position
+                    };
+                    push("", quantity, 0, e.len);
+                }
+            }
+        }
+        parts
+    }
+
     /// A one-line description, e.g. `actors/cube (13), articulations/panda (31)`.
     pub fn describe(&self) -> String {
         let parts: Vec<String> = self
@@ -135,5 +216,64 @@ impl TryFrom<Vec<StateEntry>> for StateLayout {
 impl From<StateLayout> for Vec<StateEntry> {
     fn from(layout: StateLayout) -> Self {
         layout.entries
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn summary(layout: &StateLayout) -> Vec<(String, Quantity, Range<usize>)> {
+        layout
+            .parts()
+            .into_iter()
+            .map(|p| (p.name, p.quantity, p.range))
+            .collect()
+    }
+
+    #[test]
+    fn parts_split_each_kind_by_what_it_measures() {
+        use Quantity::*;
+        let ms3 = StateLayout::from_parts([
+            ("actors/cube".to_owned(), StateKind::Actor, 13),
+            (
+                "articulations/arm".to_owned(),
+                StateKind::Articulation,
+                13 + 2 * 2,
+            ),
+        ]);
+        let expected = [
+            ("actors/cube position", Position, 0..3),
+            ("actors/cube orientation", Orientation, 3..7),
+            ("actors/cube linear velocity", Velocity, 7..10),
+            ("actors/cube angular velocity", Velocity, 10..13),
+            ("articulations/arm root position", Position, 13..16),
+            ("articulations/arm root orientation", Orientation, 16..20),
+            ("articulations/arm root linear velocity", Velocity, 20..23),
+            ("articulations/arm root angular velocity", Velocity, 23..26),
+            ("articulations/arm qpos", Position, 26..28),
+            ("articulations/arm qvel", Velocity, 28..30),
+        ]
+        .map(|(n, q, r)| (n.to_owned(), q, r));
+        assert_eq!(summary(&ms3), expected);
+        let fields = StateLayout::from_parts(
+            [
+                ("qpos", 9),
+                ("qvel", 9),
+                ("mocap_quat", 4),
+                ("desired_quat", 3),
+                ("collided", 1),
+            ]
+            .map(|(n, len)| (n.to_owned(), StateKind::Field, len)),
+        );
+        let quantities: Vec<Quantity> = fields.parts().iter().map(|p| p.quantity).collect();
+        assert_eq!(
+            quantities,
+            [Position, Velocity, Orientation, Position, Position]
+        );
+        assert_eq!(
+            summary(&StateLayout::flat(5)),
+            [("env_states".to_owned(), Value, 0..5)]
+        );
     }
 }

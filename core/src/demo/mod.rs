@@ -45,7 +45,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 pub use error::DemoError;
-pub use layout::{StateEntry, StateKind, StateLayout};
+pub use layout::{Quantity, StateEntry, StateKind, StateLayout, StatePart};
 
 /// The arguments a demo's episode was reset with; applied before the demo's state (spec 2.4)
 /// because geometry, goals and MetaWorld's random vector live outside the state vector.
