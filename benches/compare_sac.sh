@@ -5,8 +5,9 @@
 #   benches/compare_sac.sh [--threads N] [--rounds R] [--windows W] [--seconds S]
 #                          [--schedules 80/20,16/1] [--max-load 0.5] [--max-wait-s 600]
 #
-# Each round runs the bench binary that `cargo bench -p rfcl-learner --bench sac_update` builds and
-# then, right after it, benches/jax_sac_update.py (same shapes: obs 42, act 8, batch 256, hidden 256x3, 10 critics, min
+# Each round runs the bench binary that `cargo bench -p rfcl-learner --bench sac_update` builds,
+# once per learner backend (`learner.backend`: libtorch, fused), and then, right after them,
+# benches/jax_sac_update.py (same shapes: obs 42, act 8, batch 256, hidden 256x3, 10 critics, min
 # over 2 drawn members; best of W windows of S seconds per schedule), both pinned to the first N
 # cores with taskset and with N compute threads. Before each round it waits (up to --max-wait-s)
 # for the 1-minute load average to drop below --max-load, because other processes on a 2-core
@@ -86,9 +87,11 @@ for round in $(seq 1 "$rounds"); do
     load=$(wait_quiet)
     echo "round $round: rust (load $load) ..." >&2
     echo "$load" > "$out/rust_$round.load"
-    RFCL_BENCH_THREADS=$threads RFCL_BENCH_WINDOWS=$windows RFCL_BENCH_SECONDS=$seconds \
-    RFCL_BENCH_SCHEDULES=$schedules \
-        taskset -c "$cores" "$bench_bin" --bench > "$out/rust_$round.json"
+    for backend in libtorch fused; do
+        RFCL_BENCH_THREADS=$threads RFCL_BENCH_WINDOWS=$windows RFCL_BENCH_SECONDS=$seconds \
+        RFCL_BENCH_SCHEDULES=$schedules RFCL_BENCH_BACKEND=$backend \
+            taskset -c "$cores" "$bench_bin" --bench > "$out/rust_${backend}_$round.json"
+    done
     load=$(load1)
     echo "round $round: jax (load $load) ..." >&2
     echo "$load" > "$out/jax_$round.load"
@@ -106,18 +109,21 @@ def read(name):
 cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
 runs, ratios = [], []
 for r in range(1, rounds + 1):
-    rust, jax = json.loads(read(f"rust_{r}.json")), json.loads(read(f"jax_{r}.json"))
+    jax = json.loads(read(f"jax_{r}.json"))
+    rusts = {b: json.loads(read(f"rust_{b}_{r}.json")) for b in ("libtorch", "fused")}
     runs.append(dict(round=r, rust_load=float(read(f"rust_{r}.load")), jax_load=float(read(f"jax_{r}.load")),
-                     rust=rust, jax=jax))
-    # The Rust bench measures the machine's fp32 matmul peak (a 1024^3 GEMM in libtorch).
-    peak = rust.get("matmul_peak_gflop_per_s")
-    for a, b in zip(rust["results"], jax["results"]):
-        ratios.append(dict(round=r, schedule=a["schedule"], rust_updates_per_s=a["updates_per_s"],
-                           jax_updates_per_s=b["updates_per_s"], ratio=a["updates_per_s"] / b["updates_per_s"],
-                           rust_gflop_per_s=a["gflop_per_s"], jax_gflop_per_s=b["gflop_per_s"],
-                           matmul_peak_gflop_per_s=peak,
-                           jax_fraction_of_peak=b["gflop_per_s"] / peak if peak else None,
-                           rust_fraction_of_peak=a["gflop_per_s"] / peak if peak else None))
+                     rust=rusts, jax=jax))
+    for backend, rust in rusts.items():
+        # The Rust bench measures the machine's fp32 matmul peak (a 1024^3 GEMM in libtorch).
+        peak = rust.get("matmul_peak_gflop_per_s")
+        for a, b in zip(rust["results"], jax["results"]):
+            ratios.append(dict(round=r, backend=backend, schedule=a["schedule"],
+                               rust_updates_per_s=a["updates_per_s"],
+                               jax_updates_per_s=b["updates_per_s"], ratio=a["updates_per_s"] / b["updates_per_s"],
+                               rust_gflop_per_s=a["gflop_per_s"], jax_gflop_per_s=b["gflop_per_s"],
+                               matmul_peak_gflop_per_s=peak,
+                               jax_fraction_of_peak=b["gflop_per_s"] / peak if peak else None,
+                               rust_fraction_of_peak=a["gflop_per_s"] / peak if peak else None))
 print(json.dumps(dict(
     date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
     machine=f"{cpu}, {os.cpu_count()} cores, {platform.node()}",

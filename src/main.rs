@@ -128,6 +128,10 @@ struct LearnerBenchArgs {
     /// How the threads are used, one measurement each, side by side (learner): members, ops.
     #[arg(long, value_delimiter = ',', default_value = "members,ops")]
     parallelism: Vec<String>,
+    /// How critic updates take their gradients, one measurement each, side by side (learner):
+    /// libtorch (autograd), fused (docs/LEARNER.md "Backends").
+    #[arg(long, value_delimiter = ',', default_value = "libtorch,fused")]
+    backend: Vec<String>,
     /// Hidden layer widths of the actor and the critics (learner).
     #[arg(long, value_delimiter = ',', default_value = "256,256,256")]
     hidden: Vec<u32>,
@@ -427,24 +431,41 @@ fn generate_demos(env: &str, num: u32, out: &std::path::Path, seed: u64) -> Resu
 /// schedule within about `seconds`, once per parallelism asked for, side by side in one JSON
 /// report. The side-by-side comparison with JAX is benches/compare_sac.sh.
 fn bench_learner(seconds: f64, args: &LearnerBenchArgs) -> Result<()> {
-    use rfcl_core::config::Parallelism;
+    use rfcl_core::config::{Backend, Parallelism};
     let [obs_dim, action_dim] = args.dims[..] else {
         bail!(
             "--dims: expected OBS,ACTION (e.g. 39,4), got {:?}",
             args.dims
         );
     };
-    let mut reports = Vec::new();
-    for name in &args.parallelism {
-        let parallelism = match name.as_str() {
-            "members" => Parallelism::Members,
-            "ops" => Parallelism::Ops,
+    let parallelisms = args
+        .parallelism
+        .iter()
+        .map(|name| match name.as_str() {
+            "members" => Ok(Parallelism::Members),
+            "ops" => Ok(Parallelism::Ops),
             other => bail!("--parallelism: '{other}' is not one of members, ops"),
-        };
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let backends = args
+        .backend
+        .iter()
+        .map(|name| match name.as_str() {
+            "libtorch" => Ok(Backend::Libtorch),
+            "fused" => Ok(Backend::Fused),
+            other => bail!("--backend: '{other}' is not one of libtorch, fused"),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut reports = Vec::new();
+    for (&parallelism, &backend) in parallelisms
+        .iter()
+        .flat_map(|p| backends.iter().map(move |b| (p, b)))
+    {
         let cfg = rfcl_learner::bench::BenchConfig {
             window_seconds: (seconds / 6.0).max(1.0),
             threads: args.threads as i32,
             parallelism,
+            backend,
             hidden: args.hidden.clone(),
             critic_ensemble: args.critics,
             target_pool: args.critics,

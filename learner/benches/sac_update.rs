@@ -1,6 +1,7 @@
 //! `cargo bench -p rfcl-learner`: SAC updates/s on CPU as JSON (see `rfcl_learner::bench`).
 //! Environment: `RFCL_BENCH_SECONDS` (seconds per window), `RFCL_BENCH_WINDOWS` (best of N),
-//! `RFCL_BENCH_THREADS`, `RFCL_BENCH_PARALLELISM=ops` (default members), `RFCL_BENCH_SCHEDULES` (`G/F,...`), `RFCL_BENCH_PRECISION=bf16`,
+//! `RFCL_BENCH_THREADS`, `RFCL_BENCH_PARALLELISM=ops` (default members), `RFCL_BENCH_BACKEND=fused`
+//! (default libtorch), `RFCL_BENCH_SCHEDULES` (`G/F,...`), `RFCL_BENCH_PRECISION=bf16`,
 //! `RFCL_BENCH_SHAPE` (`obs,action,batch,critics,hidden...`, e.g. `7,2,256,2,64,64` for the
 //! PointMaze test agent).
 use rfcl_core::config::MatmulPrecision;
@@ -31,6 +32,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     if std::env::var("RFCL_BENCH_PARALLELISM").as_deref() == Ok("ops") {
         cfg.parallelism = rfcl_core::config::Parallelism::Ops;
+    }
+    match std::env::var("RFCL_BENCH_BACKEND").as_deref() {
+        Ok("fused") => cfg.backend = rfcl_core::config::Backend::Fused,
+        Ok("libtorch") | Err(_) => {}
+        Ok(other) => {
+            return Err(format!("RFCL_BENCH_BACKEND: {other} is not libtorch or fused").into())
+        }
     }
     if std::env::var("RFCL_BENCH_PRECISION").as_deref() == Ok("bf16") {
         cfg.matmul_precision = MatmulPrecision::Bf16;

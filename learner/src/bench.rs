@@ -10,7 +10,9 @@ use crate::error::Result;
 use crate::sac::Sac;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rfcl_core::config::{LearnerConfig, MatmulPrecision, NetworkConfig, Parallelism, SacConfig};
+use rfcl_core::config::{
+    Backend, LearnerConfig, MatmulPrecision, NetworkConfig, Parallelism, SacConfig,
+};
 use serde::Serialize;
 use std::time::{Duration, Instant};
 use tch::Tensor;
@@ -32,6 +34,8 @@ pub struct BenchConfig {
     /// [`crate::runtime::configure_cpu`] and [`Sac::set_member_threads`]).
     pub threads: i32,
     pub parallelism: Parallelism,
+    /// How critic updates take their gradients (`learner.backend`).
+    pub backend: Backend,
     /// Critic member shards with `members` parallelism (`None`: the learner's default,
     /// [`crate::members::SHARDS_PER_THREAD`] per thread).
     pub shards: Option<usize>,
@@ -61,6 +65,7 @@ impl Default for BenchConfig {
             matmul_precision: MatmulPrecision::Fp32,
             threads: 2,
             parallelism: Parallelism::Members,
+            backend: Backend::Libtorch,
             shards: None,
             warmup_iterations: 1,
             windows: 3,
@@ -140,6 +145,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport> {
             Some(shards) => sac.set_member_parallelism(member_threads as usize, shards),
             None => sac.set_member_threads(member_threads as usize),
         }
+        sac.set_backend(cfg.backend);
         shards_used = if sac.member_threads() > 1 {
             sac.member_shards()
         } else {

@@ -4,6 +4,8 @@
 //! * [`nets`]: the critic ensemble (one batched computation) and its initialisers, with the actor
 //!   (the tanh-Gaussian policy) of rfcl-policy (spec 5.1).
 //! * [`sac`]: the losses and the training iteration (spec 5.2, 5.3), metrics of spec 5.8.
+//! * [`fused`]: the critic's loss and gradients on the CPU with the elementwise work fused
+//!   (`learner.backend: fused`).
 //! * [`members`]: the critic ensemble's members run on several threads (the member-parallel
 //!   execution of [`Sac::set_member_threads`]).
 //! * [`adam`]: in-place Adam whose state can be checkpointed (spec 5.3, 4.1).
@@ -23,6 +25,7 @@ pub mod batch;
 pub mod bench;
 pub mod checkpoint;
 pub mod error;
+pub mod fused;
 pub mod ingest;
 pub mod limiter;
 pub mod members;

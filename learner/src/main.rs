@@ -159,6 +159,7 @@ async fn run(args: Args) -> Result<()> {
         tracing::info!(
             threads,
             parallelism = ?cfg.learner.parallelism,
+            backend = ?cfg.learner.backend,
             op_threads = applied.threads,
             member_threads,
             "SAC updates on the CPU"
@@ -218,6 +219,7 @@ async fn run(args: Args) -> Result<()> {
     };
     let mut trainer = trainer;
     trainer.set_member_threads(member_threads);
+    trainer.set_backend(cfg.learner.backend);
 
     let listener = TcpListener::bind(SocketAddr::new(args.bind, args.port))
         .await

@@ -18,10 +18,12 @@ use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 
+use rfcl_core::config::Backend;
 use tch::{Device, Tensor};
 
 use crate::adam::{Adam, AdamSlice, AdamStep};
 use crate::batch::Batch;
+use crate::fused;
 use crate::nets::CriticEnsemble;
 use crate::sac::{mean_squared_td_error, polyak_update, CriticStep};
 
@@ -90,6 +92,7 @@ impl MemberThreads {
     /// each member's gradient is the one of the whole loss.
     pub fn critic_update(
         &self,
+        backend: Backend,
         critic: &CriticEnsemble,
         (opt, step): (&Adam, AdamStep),
         (polyak, tau): (&[(Tensor, Tensor)], f64),
@@ -101,6 +104,7 @@ impl MemberThreads {
             .into_iter()
             .map(|(start, len)| CriticShardJob {
                 shard: critic.shard(start, len, true),
+                backend,
                 weight: len as f64 / members as f64,
                 obs: minibatch.obs.shallow_clone(),
                 action: minibatch.action.shallow_clone(),
@@ -223,6 +227,7 @@ fn helper_pool(helpers: usize) -> &'static rayon::ThreadPool {
 /// One shard's share of a critic update (see [`MemberThreads::critic_update`]).
 struct CriticShardJob {
     shard: CriticEnsemble,
+    backend: Backend,
     /// E_s / E.
     weight: f64,
     obs: Tensor,
@@ -243,21 +248,47 @@ struct CriticShardPart {
 
 impl CriticShardJob {
     fn run(mut self) -> CriticShardPart {
-        let q = self.shard.forward(&self.obs, &self.action);
+        let fused = match self.backend {
+            Backend::Fused => fused::critic_loss_and_grads(
+                &self.shard,
+                &self.obs,
+                &self.action,
+                &self.target,
+                self.weight,
+            ),
+            Backend::Libtorch => None,
+        };
+        let (part, grads) = match fused {
+            Some(f) => (
+                CriticShardPart {
+                    loss: f.loss,
+                    q_sum: f.q_sum,
+                },
+                f.grads,
+            ),
+            None => self.autograd(),
+        };
+        self.opt.step(self.step, grads);
+        polyak_update(&self.polyak, self.tau);
+        part
+    }
+
+    /// The shard's loss and its gradients by libtorch's autograd.
+    fn autograd(&self) -> (CriticShardPart, Vec<Tensor>) {
+        let shard = &self.shard;
+        let q = shard.forward(&self.obs, &self.action);
         let loss = mean_squared_td_error(&q, &self.target) * self.weight;
-        let params: Vec<Tensor> = self
-            .shard
+        let params: Vec<Tensor> = shard
             .named_parameters()
             .into_iter()
             .map(|(_, p)| p)
             .collect();
         let grads = Tensor::run_backward(&[&loss], &params, false, false);
-        self.opt.step(self.step, grads);
-        polyak_update(&self.polyak, self.tau);
-        CriticShardPart {
+        let part = CriticShardPart {
             loss: loss.detach(),
             q_sum: q.detach().sum(None),
-        }
+        };
+        (part, grads)
     }
 }
 

@@ -41,16 +41,24 @@ pub fn lecun_normal(rng: &mut ChaCha8Rng, fan_in: i64, fan_out: i64) -> Tensor {
 
 /// Per-member LayerNorm parameters, `[E, 1, H]` (Flax: scale 1, bias 0).
 #[derive(Debug)]
-struct StackedNorm {
-    scale: Tensor,
-    bias: Tensor,
+pub(crate) struct StackedNorm {
+    pub(crate) scale: Tensor,
+    pub(crate) bias: Tensor,
 }
 
 /// A member-stacked Dense: `w` `[E, fan_in, fan_out]`, `b` `[E, 1, fan_out]`.
 #[derive(Debug)]
-struct StackedDense {
-    w: Tensor,
-    b: Tensor,
+pub(crate) struct StackedDense {
+    pub(crate) w: Tensor,
+    pub(crate) b: Tensor,
+}
+
+/// The ensemble's parameters layer by layer, for the fused CPU path ([`crate::fused`]).
+pub(crate) struct Layers<'a> {
+    pub(crate) hidden: &'a [StackedDense],
+    /// One per hidden layer, or none without `critic_layer_norm`.
+    pub(crate) norms: &'a [StackedNorm],
+    pub(crate) output: &'a StackedDense,
 }
 
 impl StackedDense {
@@ -143,6 +151,28 @@ impl CriticEnsemble {
 
     pub fn members(&self) -> i64 {
         self.members
+    }
+
+    /// The parameters' element type.
+    pub fn kind(&self) -> Kind {
+        self.output.w.kind()
+    }
+
+    pub(crate) fn layers(&self) -> Layers<'_> {
+        Layers {
+            hidden: &self.hidden,
+            norms: &self.norms,
+            output: &self.output,
+        }
+    }
+
+    pub(crate) fn layer_norm_eps(&self) -> f64 {
+        self.layer_norm_eps
+    }
+
+    /// Whether the matmuls run in the parameters' own precision (not bf16).
+    pub(crate) fn fp32_matmuls(&self) -> bool {
+        self.precision == MatmulPrecision::Fp32
     }
 
     /// Q_k(obs, action) of every member: `[E, B]`. Activations are `[E, B, H]`, contiguous; the

@@ -11,11 +11,12 @@
 use crate::adam::Adam;
 use crate::batch::Batch;
 use crate::error::{LearnerError, Result};
+use crate::fused;
 use crate::members::{sum, MemberThreads};
 use crate::nets::{standard_normal, Actor, CriticEnsemble};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rfcl_core::config::{NetworkConfig, RunConfig, SacConfig};
+use rfcl_core::config::{Backend, NetworkConfig, RunConfig, SacConfig};
 use serde::Serialize;
 use tch::{nn, Device, Kind, Tensor};
 
@@ -99,6 +100,8 @@ pub struct Sac {
     /// How the critic ensemble's members run (one batched computation unless
     /// [`Sac::set_member_threads`] says otherwise).
     member_threads: MemberThreads,
+    /// How a critic update takes its gradients on the CPU ([`Sac::set_backend`]).
+    backend: Backend,
 }
 
 impl Sac {
@@ -206,6 +209,7 @@ impl Sac {
             polyak_pairs,
             rng,
             member_threads: MemberThreads::SERIAL,
+            backend: Backend::default(),
         })
     }
 
@@ -270,6 +274,7 @@ impl Sac {
         let target = self.critic_target(minibatch, &members, &noise);
         let step = self.critic_opt.begin_step();
         self.member_threads.critic_update(
+            self.backend,
             &self.critic,
             (&self.critic_opt, step),
             (&self.polyak_pairs, self.cfg.tau),
@@ -322,6 +327,7 @@ impl Sac {
         let alpha = self.alpha();
         let params = self.actor_opt.params();
         let job = |start: i64, len: i64| ActorRows {
+            backend: self.backend,
             actor: self.actor.shallow_clone(),
             params: params.iter().map(|p| p.shallow_clone()).collect(),
             critic: critic.shallow_clone(),
@@ -438,6 +444,16 @@ impl Sac {
         self.member_threads = MemberThreads::new(threads, shards, members, self.device);
     }
 
+    /// How critic updates take their gradients on the CPU: libtorch's autograd, or the fused
+    /// path of [`crate::fused`] (same maths; it falls back to autograd where it does not apply).
+    pub fn set_backend(&mut self, backend: Backend) {
+        self.backend = backend;
+    }
+
+    pub fn backend(&self) -> Backend {
+        self.backend
+    }
+
     /// See [`Sac::set_member_threads`].
     pub fn member_threads(&self) -> usize {
         self.member_threads.threads()
@@ -543,6 +559,7 @@ impl TargetRows {
 /// An actor update's work on a range of the minibatch's rows (see [`Sac::update_actor`]), owned
 /// so that a member thread can do it.
 struct ActorRows {
+    backend: Backend,
     actor: Actor,
     /// The actor's parameters, in its optimiser's order.
     params: Vec<Tensor>,
@@ -567,11 +584,36 @@ struct ActorRowsPart {
 impl ActorRows {
     fn run(self) -> ActorRowsPart {
         let pi = self.actor.sample(&self.obs, &self.noise);
-        let q = self.critic.forward(&self.obs, &pi.action);
-        let loss = policy_loss(&self.alpha, &pi.log_prob, &q) * self.weight;
-        let grads = Tensor::run_backward(&[&loss], &self.params, false, false);
+        let fused = match self.backend {
+            Backend::Fused => {
+                // −weight · mean_b mean_k Q_k: dL/dQ_{k,b} = −weight / (E·B).
+                let coefficient =
+                    -self.weight / (self.critic.members() * self.obs.size()[0]) as f64;
+                fused::critic_action_grad(&self.critic, &self.obs, &pi.action.detach(), coefficient)
+            }
+            Backend::Libtorch => None,
+        };
+        let (loss, grads) = match fused {
+            // The critic's gradient with respect to the actions is a constant here: the
+            // surrogate α·log π·weight + Σ action · dL/daction has the loss's gradients.
+            Some((q, action_grad)) => {
+                let log_term = (&self.alpha * &pi.log_prob).mean(None) * self.weight;
+                let surrogate = log_term + (&pi.action * &action_grad).sum(None);
+                let grads = Tensor::run_backward(&[&surrogate], &self.params, false, false);
+                (
+                    policy_loss(&self.alpha, &pi.log_prob.detach(), &q) * self.weight,
+                    grads,
+                )
+            }
+            None => {
+                let q = self.critic.forward(&self.obs, &pi.action);
+                let loss = policy_loss(&self.alpha, &pi.log_prob, &q) * self.weight;
+                let grads = Tensor::run_backward(&[&loss], &self.params, false, false);
+                (loss.detach(), grads)
+            }
+        };
         ActorRowsPart {
-            loss: loss.detach(),
+            loss,
             log_prob_sum: pi.log_prob.detach().sum(None),
             grads,
         }

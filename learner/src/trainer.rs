@@ -177,6 +177,12 @@ impl Trainer {
         self.sac.set_member_threads(threads);
     }
 
+    /// How critic updates take their gradients on the CPU (`learner.backend`, see
+    /// [`Sac::set_backend`]); the maths stay the same.
+    pub fn set_backend(&mut self, backend: rfcl_core::config::Backend) {
+        self.sac.set_backend(backend);
+    }
+
     pub fn progress(&self) -> &Progress {
         &self.progress
     }

@@ -402,6 +402,22 @@ pub struct LearnerConfig {
     pub threads: Option<u32>,
     /// How the SAC updates use those threads on a CPU.
     pub parallelism: Parallelism,
+    /// How the critic's gradients are computed on a CPU.
+    pub backend: Backend,
+}
+
+/// How the learner computes the critic ensemble's loss and gradients on a CPU (CUDA always runs
+/// libtorch's autograd). Both compute the same maths (docs/LEARNER.md "Backends").
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// libtorch's ops and autograd.
+    Libtorch,
+    /// libtorch's matrix products with the LayerNorm, ReLU and bias work between them fused
+    /// into one pass per layer forward and backward, and the backward written out: 1.2-1.6x
+    /// the critic updates per second of `Libtorch` (benches/RESULTS.md).
+    #[default]
+    Fused,
 }
 
 /// How the learner spreads its SAC updates over `learner.threads` CPU threads.
