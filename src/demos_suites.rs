@@ -130,6 +130,60 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
     Ok(())
 }
 
+/// `rfcl demos record --config CFG --policy MODULE:CALLABLE -n N --out OUT [--seed S]
+/// [--max-attempts K]`: the first N successful episodes of the user's policy (observation ->
+/// action in [-1, 1]) in the env of the run config, from seeds S, S+1, ...
+pub fn record(
+    config: &Path,
+    policy: &str,
+    num: u32,
+    out: &Path,
+    seed: u64,
+    max_attempts: Option<u32>,
+) -> Result<()> {
+    let what = format!("`rfcl demos record --config {}`", config.display());
+    let cfg = rfcl_core::config::resolve_file(config, &[])?;
+    if cfg.env.suite == rfcl_core::config::Suite::Pointmaze {
+        bail!(
+            "{what}: PointMaze runs in Rust, not through a Python policy; its demos come from              `rfcl demos generate --env pointmaze`"
+        );
+    }
+    if num == 0 {
+        bail!("-n must be at least 1");
+    }
+    create_parent(out)?;
+    let env = &cfg.env;
+    let bar = bar(
+        u64::from(num),
+        format!("{}: recording {policy}", env.env_id),
+    );
+    let mut args: Vec<String> = vec![
+        "record".into(),
+        "--suite".into(),
+        rfcl_actor::python::suite_name(env.suite),
+        "--env-id".into(),
+        env.env_id.clone(),
+        "--options".into(),
+        rfcl_actor::python::env_options(env).to_string(),
+        "--policy".into(),
+        policy.into(),
+        "-n".into(),
+        num.to_string(),
+        "--out".into(),
+        path_str(out)?.into(),
+        "--seed".into(),
+        seed.to_string(),
+    ];
+    if let Some(k) = max_attempts {
+        args.extend(["--max-attempts".into(), k.to_string()]);
+    }
+    run_demos_tool(&bar, &args, &what)?;
+    bar.finish_and_clear();
+    let set = load_written(out, &env.env_id)?;
+    report(&set, out, "recorded");
+    Ok(())
+}
+
 /// The MetaWorld task for what follows `metaworld/`: underscores become hyphens (the presets'
 /// file names) and `-v3` is added when no version is given.
 fn metaworld_task(task: &str) -> String {

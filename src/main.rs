@@ -211,6 +211,31 @@ enum DemosCommand {
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
+    /// Record the successful episodes of your own policy (a Python callable from an observation
+    /// to an action in [-1, 1]) in the env a run config describes, with their simulator states
+    /// (docs/YOUR_TASK.md).
+    Record {
+        /// The run config whose env the policy acts in (its env.suite, env_id, env_kwargs,
+        /// imports).
+        #[arg(long)]
+        config: PathBuf,
+        /// The policy, module:callable (importable by the venv's Python, e.g. a module of a
+        /// package in env.imports).
+        #[arg(long)]
+        policy: String,
+        /// Number of successful demos.
+        #[arg(short = 'n', long, default_value_t = 5)]
+        num: u32,
+        /// Output .h5 file (a .json sidecar is written beside it).
+        #[arg(long)]
+        out: PathBuf,
+        /// First episode seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Episodes to try at most (default 4n).
+        #[arg(long)]
+        max_attempts: Option<u32>,
+    },
     /// Convert a trajectory file a user brings into the run's control mode and state observations.
     Convert {
         input: PathBuf,
@@ -341,6 +366,18 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     seed,
                 },
         } => generate_demos(&env, num, &out, seed).map(|()| ExitCode::SUCCESS),
+        Command::Demos {
+            command:
+                DemosCommand::Record {
+                    config,
+                    policy,
+                    num,
+                    out,
+                    seed,
+                    max_attempts,
+                },
+        } => demos_suites::record(&config, &policy, num, &out, seed, max_attempts)
+            .map(|()| ExitCode::SUCCESS),
         Command::Demos {
             command: DemosCommand::Convert { input, out, suite },
         } => {

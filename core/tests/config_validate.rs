@@ -405,3 +405,30 @@ fn the_edges_of_each_range_are_valid() {
         assert!(accepted(*edit), "edge case {i} should be valid");
     }
 }
+
+/// `env.imports` belongs to the suites whose envs come from Python modules, and names modules.
+#[test]
+fn env_imports_are_for_the_gymnasium_and_maniskill3_suites() {
+    use rfcl_core::config::Suite;
+    let err = rejected(|c| c.env.imports = vec!["my_envs".into()]);
+    let text = err.to_string();
+    assert!(
+        text.contains("env.imports") && text.contains("only the gymnasium and maniskill3 suites"),
+        "{text}"
+    );
+    let err = rejected(|c| {
+        c.env.suite = Suite::Gymnasium;
+        c.env.imports = vec!["my envs".into()];
+    });
+    assert!(
+        err.to_string()
+            .contains("'my envs' is not a Python module name"),
+        "{err}"
+    );
+    for suite in [Suite::Gymnasium, Suite::Maniskill3] {
+        let mut config = RunConfig::default();
+        config.env.suite = suite;
+        config.env.imports = vec!["my_package.envs".into()];
+        assert!(config.validate().is_ok(), "{suite:?}");
+    }
+}

@@ -117,6 +117,39 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
             "torch {from_torch:?} vs rust {from_rust:?}"
         );
     }
+
+    // So does rfcl_sim.load_policy, with NumPy alone, on the run directory and on the file.
+    let numpy = |path: &Path| -> Vec<f32> {
+        let code = "import json, sys; from rfcl_sim import load_policy; \
+                    p = load_policy(sys.argv[1]); \
+                    print(json.dumps(p([float(x) for x in sys.argv[2:]]).tolist()))";
+        let out = Command::new(&python)
+            .env(
+                "PYTHONPATH",
+                Path::new(env!("CARGO_MANIFEST_DIR")).join("../python"),
+            )
+            .args(["-c", code])
+            .arg(path)
+            .args(obs.iter().map(|o| o.to_string()))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    for path in [run_dir.clone(), run_dir.join("policy.safetensors")] {
+        let from_numpy = numpy(&path);
+        assert_eq!(from_numpy.len(), ACT);
+        for (n, r) in from_numpy.iter().zip(&from_rust) {
+            assert!(
+                (n - r).abs() < 1e-5,
+                "numpy {from_numpy:?} vs rust {from_rust:?}"
+            );
+        }
+    }
 }
 
 /// A budget between two iterations ends with one more iteration on the steps since the last, so

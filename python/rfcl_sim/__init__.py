@@ -1,4 +1,12 @@
-"""The Python side of rfcl's simulator workers (ManiSkill3, MetaWorld, Adroit).
+"""The Python side of rfcl: the simulator workers' adapters (ManiSkill3, MetaWorld, Adroit, your
+own Gymnasium envs), demo files and demo sources, and a NumPy loader for exported policies.
 
-The Rust actor drives these adapters; `python -m rfcl_sim.check` verifies the tested package matrix.
+* :func:`load_policy` (:mod:`rfcl_sim.policy`): a run's policy as a NumPy callable;
+* :mod:`rfcl_sim.demo_file`: read and write rfcl's demo files;
+* :mod:`rfcl_sim.adapters`: the adapter contract and the suites;
+* ``python -m rfcl_sim.demos``: demo sources; ``python -m rfcl_sim.check``: the tested package
+  matrix.
 """
+from .policy import Policy, PolicyError, load_policy
+
+__all__ = ["Policy", "PolicyError", "load_policy"]

@@ -92,8 +92,12 @@ def write(path: Path, env_info: dict[str, Any], layout: list[tuple[str, str, int
 
 
 def read(path: Path) -> tuple[dict[str, Any], list[tuple[str, str, int]], list[Trajectory]]:
-    """Reads a demo file written by :func:`write` (named-field states only): ``env_info``, the
-    state layout and the trajectories by ascending episode id."""
+    """Reads any demo file rfcl reads (core/src/demo/mod.rs): ``env_info``, the state layout and
+    the trajectories by ascending episode id. ``env_states`` may be named fields (what
+    :func:`write` and the MetaWorld/Adroit sources write), ManiSkill3's groups ``actors/<name>``
+    and ``articulations/<name>`` (what ``rfcl demos generate`` and ``convert`` write for
+    ManiSkill3; entries ``actors/...`` first, then ``articulations/...``, each group in its link
+    order, as the Rust reader flattens them), or one flat dataset (ManiSkill2)."""
     import h5py
 
     path = Path(path)
@@ -110,32 +114,63 @@ def read(path: Path) -> tuple[dict[str, Any], list[tuple[str, str, int]], list[T
         for name in names:
             g = f[name]
             episode_id = int(name[5:])
-            states_group = g["env_states"]
-            if not isinstance(states_group, h5py.Group):
-                raise DemoFileError(f"{path}: {name}/env_states is not a group of named fields")
-            fields = list(states_group.keys())  # creation order: the group tracks it
-            this_layout = [(k, "field", int(states_group[k].shape[1])) for k in fields]
+            if "env_states" not in g:
+                raise DemoFileError(f"{path}: {name} has no env_states")
+            leaves = _state_leaves(path, name, g["env_states"])
+            this_layout = [(leaf, kind, int(values.shape[1])) for leaf, kind, values in leaves]
             if layout is None:
                 layout = this_layout
             elif this_layout != layout:
-                raise DemoFileError(f"{path}: {name}/env_states has fields {this_layout}, the "
+                raise DemoFileError(f"{path}: {name}/env_states has entries {this_layout}, the "
                                     f"first trajectory has {layout}")
             reset = resets.get(episode_id)
             if reset is None:
                 raise DemoFileError(f"{side}: no episodes[] entry for {name}")
             trajectories.append(Trajectory(
                 episode_id=episode_id,
-                obs=g["obs"][()].astype(np.float32),
-                actions=g["actions"][()].astype(np.float32),
-                success=g["success"][()].astype(bool),
-                states=np.concatenate([states_group[k][()] for k in fields], axis=1)
+                obs=_rows(g["obs"][()]).astype(np.float32),
+                actions=_rows(g["actions"][()]).astype(np.float32),
+                success=np.asarray(g["success"][()]).astype(bool).reshape(-1),
+                states=np.concatenate([values for _, _, values in leaves], axis=1)
                 .astype(np.float32),
-                seed=reset.get("seed"),
+                seed=reset.get("seed", reset.get("episode_seed")),
                 options=reset.get("options") or {},
             ))
     if layout is None:
         raise DemoFileError(f"{path}: no traj_<id> groups")
     return meta["env_info"], layout, trajectories
+
+
+def _rows(values: np.ndarray) -> np.ndarray:
+    """A 1-D dataset is one column."""
+    values = np.asarray(values)
+    return values.reshape(-1, 1) if values.ndim == 1 else values
+
+
+def _state_leaves(path: Path, traj: str, states: Any) -> list[tuple[str, str, np.ndarray]]:
+    """``env_states`` as ``(entry name, kind, [T+1, k] values)`` in layout order."""
+    import h5py
+
+    if isinstance(states, h5py.Dataset):
+        return [("env_states", "flat", _rows(states[()]))]
+    groups = [k for k in ("actors", "articulations") if k in states]
+    if groups:
+        leaves = []
+        for group in groups:
+            kind = "actor" if group == "actors" else "articulation"
+            for entity, values in states[group].items():  # link order
+                if not isinstance(values, h5py.Dataset):
+                    raise DemoFileError(f"{path}: {traj}/env_states/{group}/{entity} is not a "
+                                        "dataset")
+                leaves.append((f"{group}/{entity}", kind, _rows(values[()])))
+        return leaves
+    leaves = []
+    for field_name, values in states.items():  # creation order: the group tracks it
+        if not isinstance(values, h5py.Dataset):
+            raise DemoFileError(f"{path}: {traj}/env_states/{field_name} is a group; expected "
+                                "named fields, or ManiSkill3's actors/ and articulations/")
+        leaves.append((field_name, "field", _rows(values[()])))
+    return leaves
 
 
 def _validate(path: Path, env_info: dict[str, Any], layout: list[tuple[str, str, int]],

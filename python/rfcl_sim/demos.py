@@ -1,4 +1,10 @@
-"""Demo sources for MetaWorld and Adroit, written in rfcl's demo format (:mod:`rfcl_sim.demo_file`).
+"""Demo sources for MetaWorld, Adroit and your own policy, written in rfcl's demo format
+(:mod:`rfcl_sim.demo_file`).
+
+``python -m rfcl_sim.demos record --suite S --env-id E --options JSON --policy M:F -n N --out FILE``
+    (what ``rfcl demos record --config CFG --policy M:F`` runs): your policy ``F`` of module ``M``
+    (a callable from an observation to an action in [-1, 1]) in the env a run config describes,
+    episodes recorded as the MetaWorld ones below, the first N successful ones kept.
 
 ``python -m rfcl_sim.demos metaworld --task pick-place-v3 -n 5 --out FILE``
     Rolls out MetaWorld's scripted policy (``metaworld.policies``) from seeds 0, 1, 2, ... through
@@ -41,7 +47,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -73,13 +79,20 @@ def scripted_policy(task: str) -> Any:
 def metaworld_episode(adapter: Any, policy: Any, seed: int, post_success_steps: int
                       ) -> Trajectory | None:
     """One scripted episode from ``seed``; ``None`` when it never succeeds within the horizon."""
+    return policy_episode(adapter, policy.get_action, seed, post_success_steps)
+
+
+def policy_episode(adapter: Any, act: Callable[[np.ndarray], Any], seed: int,
+                   post_success_steps: int) -> Trajectory | None:
+    """One episode of ``act`` (observation -> action in [-1, 1]) from ``seed``, started from the
+    float32 state a replay starts from; ``None`` when it never succeeds within the horizon."""
     adapter.reset(seed, {})
     state = adapter.get_state()
     obs = adapter.set_state(state)  # start from the float32 state a replay starts from
     observations, states, actions, flags = [obs], [state], [], []
     first_success = None
     for t in range(adapter.horizon):
-        action = np.clip(np.asarray(policy.get_action(obs), dtype=np.float32), -1.0, 1.0)
+        action = np.clip(np.asarray(act(obs), dtype=np.float32).reshape(-1), -1.0, 1.0)
         obs, success = adapter.step(action)
         observations.append(obs)
         states.append(adapter.get_state())
@@ -140,6 +153,78 @@ def generate_metaworld(task: str, n: int, out: Path, first_seed: int = 0,
             "env_kwargs": {},
             "max_episode_steps": adapter.horizon,
             "source": f"metaworld.policies.{type(policy).__name__} (rfcl_sim.demos metaworld)",
+        }
+        demo_file.write(out, env_info, adapter.state_layout(), kept)
+    finally:
+        adapter.close()
+    return kept
+
+
+# Your own policy ---------------------------------------------------------------------------------
+
+
+def load_callable(spec: str) -> Callable[..., Any]:
+    """``module:callable`` (after the config's ``env.imports`` are imported)."""
+    import importlib
+
+    module, sep, name = spec.partition(":")
+    if not sep or not module or not name:
+        raise DemoSourceError(f"--policy '{spec}': expected module:callable, e.g. "
+                              "my_package.policies:scripted")
+    try:
+        target: Any = importlib.import_module(module)
+    except Exception as e:  # noqa: BLE001 - the user's module, by name
+        raise DemoSourceError(f"--policy '{spec}': importing '{module}' failed "
+                              f"({type(e).__name__}: {e})") from e
+    for part in name.split("."):
+        if not hasattr(target, part):
+            raise DemoSourceError(f"--policy '{spec}': '{module}' has no '{name}'")
+        target = getattr(target, part)
+    if not callable(target):
+        raise DemoSourceError(f"--policy '{spec}': '{name}' is not callable")
+    return target
+
+
+def record(suite: str, env_id: str, options: dict[str, Any], policy: str, n: int, out: Path,
+           first_seed: int = 0, max_attempts: int | None = None,
+           post_success_steps: int = POST_SUCCESS_STEPS, log=print) -> list[Trajectory]:
+    """Writes ``n`` successful episodes of ``policy`` (``module:callable``: observation -> action
+    in [-1, 1]) in the env the run config describes (``suite``, ``env_id``, its env ``options``)
+    to ``out``; seeds run from ``first_seed`` up, at most ``max_attempts`` episodes (default
+    4n). Each episode is recorded like the scripted MetaWorld demos: from the float32 state a
+    replay starts from, cut back to its last success step."""
+    from . import adapters
+
+    if n < 1:
+        raise DemoSourceError(f"record: -n must be at least 1, got {n}")
+    adapter = adapters.make(suite, env_id, **options)
+    try:
+        act = load_callable(policy)
+        attempts = max_attempts if max_attempts is not None else 4 * n
+        kept: list[Trajectory] = []
+        seed = first_seed
+        while len(kept) < n and seed < first_seed + attempts:
+            traj = policy_episode(adapter, act, seed, post_success_steps)
+            if traj is None:
+                log(f"  seed {seed}: no success in {adapter.horizon} steps, skipped")
+            else:
+                traj.episode_id = len(kept)
+                kept.append(traj)
+                log(f"  seed {seed}: first success flag at t = {int(np.argmax(traj.success))}, "
+                    f"T = {traj.length} steps kept")
+            seed += 1
+        if len(kept) < n:
+            raise DemoSourceError(
+                f"record: only {len(kept)} of {seed - first_seed} episodes of {policy} in "
+                f"{env_id} succeeded (seeds {first_seed}..{seed - 1}), {n} wanted; raise "
+                "--max-attempts or fix the policy"
+            )
+        env_info = {
+            "env_id": env_id,
+            "suite": suite,
+            "env_kwargs": dict(options.get("env_kwargs") or {}),
+            "max_episode_steps": adapter.horizon,
+            "source": f"{policy} (rfcl demos record)",
         }
         demo_file.write(out, env_info, adapter.state_layout(), kept)
     finally:
@@ -370,6 +455,19 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"steps recorded after the first success (default {POST_SUCCESS_STEPS})")
     mw.add_argument("--max-episode-steps", type=int, default=None,
                     help="horizon (default 200, spec 8.3)")
+    rec = sub.add_parser("record", help="successful episodes of your own policy")
+    rec.add_argument("--suite", required=True, help="the run config's env.suite")
+    rec.add_argument("--env-id", required=True, help="the run config's env.env_id")
+    rec.add_argument("--options", default="{}",
+                     help="the env options as JSON (max_episode_steps, env_kwargs, imports, ...)")
+    rec.add_argument("--policy", required=True, help="module:callable, observation -> action")
+    rec.add_argument("-n", type=int, default=5, help="successful demos to keep (default 5)")
+    rec.add_argument("--out", required=True, type=Path, help="demo file to write (.h5)")
+    rec.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")
+    rec.add_argument("--max-attempts", type=int, default=None,
+                     help="episodes to try at most (default 4n)")
+    rec.add_argument("--post-success-steps", type=int, default=POST_SUCCESS_STEPS,
+                     help=f"steps recorded after the first success (default {POST_SUCCESS_STEPS})")
     ad = sub.add_parser("adroit-convert", help="convert Adroit human demos (D4RL or Minari)")
     ad.add_argument("--task", required=True, help="door, pen, relocate or an Adroit env id")
     ad.add_argument("--in", dest="src", required=True, type=Path, help="D4RL or Minari HDF5 file")
@@ -383,7 +481,14 @@ def main(argv: list[str] | None = None) -> int:
     warnings.filterwarnings("ignore", category=UserWarning)
     start = time.perf_counter()
     try:
-        if args.command == "metaworld":
+        if args.command == "record":
+            import json
+
+            print(f"rfcl_sim.demos: {args.n} demos of {args.policy} in {args.env_id} -> {args.out}")
+            options = json.loads(args.options)
+            trajs = record(args.suite, args.env_id, options, args.policy, args.n, args.out,
+                           args.seed, args.max_attempts, args.post_success_steps)
+        elif args.command == "metaworld":
             print(f"rfcl_sim.demos: {args.n} scripted demos of {args.task} -> {args.out}")
             trajs = generate_metaworld(args.task, args.n, args.out, args.seed, args.max_attempts,
                                        args.post_success_steps, args.max_episode_steps)

@@ -120,18 +120,10 @@ impl WorkerSpec {
     /// The worker for a run's env section: `max_episode_steps`, and `control_mode` and
     /// `env_kwargs` where set, become the adapter's options.
     pub fn from_env_config(env: &EnvConfig) -> Result<Self, PythonEnvError> {
-        let mut options = serde_json::Map::new();
-        options.insert("max_episode_steps".into(), env.max_episode_steps.into());
-        if let Some(mode) = &env.control_mode {
-            options.insert("control_mode".into(), mode.clone().into());
-        }
-        if !env.env_kwargs.is_empty() {
-            options.insert("env_kwargs".into(), env.env_kwargs.clone().into());
-        }
         Ok(WorkerSpec {
             suite: suite_name(env.suite),
             env_id: env.env_id.clone(),
-            options: options.into(),
+            options: env_options(env),
             program: worker_program()?,
         })
     }
@@ -155,6 +147,23 @@ impl WorkerSpec {
             self.options.to_string(),
         ]
     }
+}
+
+/// The keyword arguments an adapter is made with (`rfcl_sim.adapters.make`), from the run's env
+/// config: `max_episode_steps`, and `control_mode`, `env_kwargs` and `imports` where given.
+pub fn env_options(env: &EnvConfig) -> serde_json::Value {
+    let mut options = serde_json::Map::new();
+    options.insert("max_episode_steps".into(), env.max_episode_steps.into());
+    if let Some(mode) = &env.control_mode {
+        options.insert("control_mode".into(), mode.clone().into());
+    }
+    if !env.env_kwargs.is_empty() {
+        options.insert("env_kwargs".into(), env.env_kwargs.clone().into());
+    }
+    if !env.imports.is_empty() {
+        options.insert("imports".into(), env.imports.clone().into());
+    }
+    options.into()
 }
 
 /// The config name of a suite (`maniskill3`, ...).

@@ -38,6 +38,16 @@ pub enum Suite {
     Metaworld,
     /// Adroit from gymnasium-robotics (spec 7.4).
     Adroit,
+    /// Your own task: any Gymnasium env that saves and restores its state, or any MuJoCo env
+    /// (docs/YOUR_TASK.md, `python/rfcl_sim/adapters/gym_envs.py`).
+    Gymnasium,
+}
+
+impl Suite {
+    /// Whether the suite's envs may come from modules the config imports (`env.imports`).
+    pub fn takes_imports(self) -> bool {
+        matches!(self, Suite::Gymnasium | Suite::Maniskill3)
+    }
 }
 
 /// The training env (spec 7, 8.1).
@@ -54,6 +64,9 @@ pub struct EnvConfig {
     pub control_mode: Option<String>,
     /// Extra keyword arguments for the simulator's constructor.
     pub env_kwargs: serde_json::Map<String, serde_json::Value>,
+    /// Python modules the simulator worker imports before it makes the env, e.g. the package
+    /// that registers your own envs (`gymnasium` and `maniskill3` suites).
+    pub imports: Vec<String>,
     /// Expected observation dim; checked against demos and the env when set.
     pub obs_dim: Option<u32>,
     /// Expected action dim; checked against demos and the env when set.
@@ -518,6 +531,7 @@ impl Default for EnvConfig {
             num_envs: 8,
             control_mode: None,
             env_kwargs: serde_json::Map::new(),
+            imports: Vec::new(),
             obs_dim: None,
             action_dim: None,
         }

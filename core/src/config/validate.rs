@@ -56,6 +56,22 @@ impl RunConfig {
                 "must not be empty (null = the suite's default)".into()
             })?;
         }
+        ensure(
+            env.imports.is_empty() || env.suite.takes_imports(),
+            "env.imports",
+            || {
+                "only the gymnasium and maniskill3 suites import modules; the other suites' \
+                 envs are built in (give [] or leave it out)"
+                    .into()
+            },
+        )?;
+        for module in &env.imports {
+            ensure(
+                !module.is_empty() && !module.contains(char::is_whitespace),
+                "env.imports",
+                || format!("'{module}' is not a Python module name"),
+            )?;
+        }
         at_least_opt("env.obs_dim", env.obs_dim, 1)?;
         at_least_opt("env.action_dim", env.action_dim, 1)?;
         ensure(

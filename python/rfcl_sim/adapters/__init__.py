@@ -15,6 +15,7 @@ SUITES = {
     "maniskill3": "maniskill",
     "metaworld": "metaworld",
     "adroit": "adroit",
+    "gymnasium": "gym_envs",
 }
 
 

@@ -23,6 +23,7 @@ simulator is made exactly as if rendering did not exist, and ``render()`` raises
 from __future__ import annotations
 
 import abc
+import importlib
 from typing import Any
 
 import numpy as np
@@ -163,3 +164,19 @@ def check_render_size(suite: str, render_size: Any) -> int | None:
             f"{RENDER_SIZE_MIN} to {RENDER_SIZE_MAX} (pixels a side), got {render_size!r}"
         )
     return int(render_size)
+
+
+def import_modules(suite: str, modules: Any) -> None:
+    """Imports every module of the config's ``env.imports`` (a list of module names), so that the
+    envs they register exist; an import that fails names the module and why."""
+    if modules is None:
+        return
+    if not isinstance(modules, (list, tuple)) or not all(isinstance(m, str) for m in modules):
+        raise AdapterError(f"{suite}: imports must be a list of module names, got {modules!r}")
+    for module in modules:
+        try:
+            importlib.import_module(module)
+        except Exception as e:  # noqa: BLE001 - any failure of the user's module, by name
+            raise AdapterError(
+                f"{suite}: env.imports: importing '{module}' failed ({type(e).__name__}: {e})"
+            ) from e

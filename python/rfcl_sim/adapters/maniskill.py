@@ -39,14 +39,16 @@ from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError, check_render_size
+from .base import Adapter, AdapterError, check_render_size, import_modules
 
 SUITE = "maniskill3"
 DEFAULT_CONTROL_MODE = "pd_joint_delta_pos"
 DEFAULT_SIM_BACKEND = "physx_cpu"
 
 #: The keyword arguments :func:`make` understands (the run config's env section, spec 7.1).
-KWARGS = ("control_mode", "max_episode_steps", "env_kwargs", "seed", "sim_backend", "render_size")
+KWARGS = (
+    "control_mode", "max_episode_steps", "env_kwargs", "seed", "sim_backend", "render_size", "imports",
+)
 
 
 def fold_seed(seed: int) -> int:
@@ -83,16 +85,20 @@ class ManiSkillAdapter(Adapter):
         seed: int | None = None,
         sim_backend: str | None = None,
         render_size: int | None = None,
+        imports: list[str] | None = None,
     ) -> None:
         self.render_size = check_render_size(SUITE, render_size)
         import gymnasium as gym
         import mani_skill.envs  # noqa: F401  (registers the tasks)
         from mani_skill.utils.registration import REGISTERED_ENVS
 
+        # Modules of the config's env.imports register the user's own tasks.
+        import_modules(SUITE, imports)
         if env_id not in REGISTERED_ENVS:
             raise AdapterError(
                 f"ManiSkill3 has no env '{env_id}' (e.g. PickCube-v1, StackCube-v1, "
-                "PegInsertionSide-v1, PlugCharger-v1)"
+                "PegInsertionSide-v1, PlugCharger-v1; an env of your own package is registered "
+                "when the config lists its module in env.imports)"
             )
         extra = dict(env_kwargs or {})
         fixed = {"obs_mode", "sim_backend", "num_envs", "reward_mode", "control_mode", "render_mode"}

@@ -37,7 +37,8 @@ pub struct Bridge {
 impl Bridge {
     /// Initialises Python (once per process), puts the venv's site-packages on `sys.path` (an
     /// embedded interpreter does not know it runs for a venv) and makes the
-    /// adapter. The error is the Python traceback.
+    /// adapter. The error is the Python traceback, or for bad input (an `AdapterError`, whose
+    /// message names what was wrong and what was expected) that message alone.
     pub fn new(suite: &str, env_id: &str, options_json: &str) -> Result<Self, String> {
         Python::attach(|py| {
             let make = || -> PyResult<Py<PyAny>> {
@@ -50,9 +51,17 @@ impl Bridge {
                     .call1((suite, env_id, options_json))?;
                 Ok(bridge.unbind())
             };
-            make()
-                .map(|bridge| Bridge { bridge })
-                .map_err(|e| traceback_text(py, &e))
+            make().map(|bridge| Bridge { bridge }).map_err(|e| {
+                let bad_input = e
+                    .get_type(py)
+                    .name()
+                    .is_ok_and(|name| name.to_string() == "AdapterError");
+                if bad_input {
+                    e.value(py).to_string()
+                } else {
+                    traceback_text(py, &e)
+                }
+            })
         })
     }
 
