@@ -2,6 +2,7 @@
 //! run. PointMaze runs natively (spec 7.5); ManiSkill3, MetaWorld and Adroit (spec 7.1-7.4) run
 //! in Python worker processes ([`crate::python`]), whose adapters report their own dims.
 use rfcl_core::config::{EnvConfig, Suite};
+use rfcl_core::demo::{DemoSet, StateLayout};
 
 use crate::env::Env;
 use crate::pointmaze::{self, PointMaze};
@@ -21,6 +22,13 @@ pub enum SuiteError {
         what: &'static str,
         expected: usize,
         got: usize,
+    },
+    /// The demo file's observations, actions or states do not fit the env.
+    #[error("the demos do not fit env '{env_id}' of suite '{suite}': {why}")]
+    DemosDoNotFit {
+        suite: String,
+        env_id: String,
+        why: String,
     },
     /// The Python worker could not be found, started or asked (the message says which, with the
     /// Python traceback where there is one).
@@ -59,6 +67,58 @@ pub fn native_dims(env: &EnvConfig) -> Result<(usize, usize), SuiteError> {
             Ok((hello.obs_dim, hello.action_dim))
         }
     }
+}
+
+/// Whether the demos of `set` fit `env`: the same observation and action dims and the same state
+/// layout (names, kinds and lengths, in order), so that every demo state is one the env can
+/// restore. For a Python suite a worker is started and stopped to ask the env.
+pub fn check_demos_fit(env: &EnvConfig, set: &DemoSet) -> Result<(), SuiteError> {
+    check_supported(env)?;
+    let (obs_dim, action_dim, layout) = match env.suite {
+        Suite::Pointmaze => (
+            pointmaze::OBS_DIM,
+            pointmaze::ACTION_DIM,
+            pointmaze::state_layout(),
+        ),
+        _ => {
+            let spec = WorkerSpec::from_env_config(env).map_err(|e| python_error(env, e))?;
+            python::describe_layout(&spec).map_err(|e| python_error(env, e))?
+        }
+    };
+    demos_fit(
+        (obs_dim, action_dim, &layout),
+        (set.obs_dim, set.action_dim, &set.state_layout),
+    )
+    .map_err(|why| SuiteError::DemosDoNotFit {
+        suite: python::suite_name(env.suite),
+        env_id: env.env_id.clone(),
+        why,
+    })
+}
+
+/// The first way demos of (obs dim, action dim, state layout) `demos` differ from an env's.
+pub fn demos_fit(
+    env: (usize, usize, &StateLayout),
+    demos: (usize, usize, &StateLayout),
+) -> Result<(), String> {
+    let (env_obs, env_action, env_layout) = env;
+    let (obs, action, layout) = demos;
+    if (obs, action) != (env_obs, env_action) {
+        return Err(format!(
+            "the demos have obs {obs} and action {action} values, the env {env_obs} and \
+             {env_action}"
+        ));
+    }
+    if layout != env_layout {
+        return Err(format!(
+            "the demos' states are {} ({} values), the env's {} ({} values)",
+            layout.describe(),
+            layout.dim(),
+            env_layout.describe(),
+            env_layout.dim()
+        ));
+    }
+    Ok(())
 }
 
 fn python_error(env: &EnvConfig, e: python::PythonEnvError) -> SuiteError {
@@ -131,6 +191,36 @@ mod tests {
             make_env(&wrong, 3, 7, 2, None).err().unwrap(),
             SuiteError::UnknownPointMaze { .. }
         ));
+    }
+
+    #[test]
+    fn demos_fit_only_an_env_of_their_dims_and_state_layout() {
+        use rfcl_core::demo::StateKind;
+        let fields = |parts: &[(&str, usize)]| {
+            StateLayout::from_parts(
+                parts
+                    .iter()
+                    .map(|&(n, len)| (n.to_owned(), StateKind::Field, len)),
+            )
+        };
+        let env = fields(&[("pos", 2), ("vel", 2)]);
+        assert_eq!(demos_fit((6, 2, &env), (6, 2, &env.clone())), Ok(()));
+        assert_eq!(
+            demos_fit((6, 2, &env), (7, 2, &env)).unwrap_err(),
+            "the demos have obs 7 and action 2 values, the env 6 and 2"
+        );
+        let renamed = fields(&[("position", 2), ("vel", 2)]);
+        assert_eq!(
+            demos_fit((6, 2, &env), (6, 2, &renamed)).unwrap_err(),
+            "the demos' states are position (2), vel (2) (4 values), the env's pos (2), vel (2) \
+             (4 values)"
+        );
+        // PointMaze's own demos fit it.
+        let set = crate::pointmaze::demos::demo_set(
+            crate::pointmaze::demos::generate_demos(1, 0),
+            "x.h5",
+        );
+        assert_eq!(check_demos_fit(&EnvConfig::default(), &set), Ok(()));
     }
 
     #[test]

@@ -124,3 +124,30 @@ def test_an_env_that_never_says_success_is_named_at_its_first_step():
 def test_the_lossy_entry_is_named():
     with pytest.raises(AdapterError, match=r"at entry 2 \(state\[2\]\)"):
         make("gymnasium", "gym_fixtures:toy", max_episode_steps=10, env_kwargs={"lossy": True})
+
+
+def test_record_writes_your_policys_successful_episodes(tmp_path):
+    from rfcl_sim import demo_file, demos
+
+    out = tmp_path / "wall_reach.h5"
+    options = {"imports": ["wall_reach"], "max_episode_steps": 60}
+    kept = demos.record("gymnasium", "WallReach-v0", options, "wall_reach:scripted_policy", 3,
+                        out, log=lambda line: None)
+    env_info, layout, trajs = demo_file.read(out)
+    assert env_info["suite"] == "gymnasium" and env_info["max_episode_steps"] == 60
+    assert layout == [("pos", "field", 2), ("vel", "field", 2), ("goal", "field", 2)]
+    assert [t.seed for t in trajs] == [0, 1, 2] and all(t.succeeded for t in trajs)
+    np.testing.assert_array_equal(trajs[1].states, kept[1].states.astype(np.float32))
+
+
+@pytest.mark.parametrize("policy, message", [
+    ("wall_reach", "expected module:callable"),
+    ("wall_reach:no_such_policy", "'wall_reach' has no 'no_such_policy'"),
+    ("no_such_module:act", "importing 'no_such_module' failed"),
+])
+def test_record_names_a_policy_it_cannot_use(tmp_path, policy, message):
+    from rfcl_sim import demos
+
+    with pytest.raises(demos.DemoSourceError, match=message):
+        demos.record("gymnasium", "WallReach-v0", {"imports": ["wall_reach"]}, policy, 1,
+                     tmp_path / "x.h5", log=lambda line: None)

@@ -206,6 +206,11 @@ fn check_runnable(cfg: &RunConfig) -> Result<()> {
     crate::demo_check::refuse_if_it_crashes_the_reader(Path::new(demos))
         .context("train.dataset_path")?;
     rfcl_actor::suite::check_supported(&cfg.env)?;
+    // The reader does not crash on the file (checked just above); the services read it again.
+    let set = rfcl_core::demo::DemoSet::load(Path::new(demos))
+        .with_context(|| format!("train.dataset_path: reading {demos}"))?;
+    rfcl_actor::suite::check_demos_fit(&cfg.env, &set)
+        .with_context(|| format!("train.dataset_path {demos}"))?;
     let s = &cfg.service;
     if s.num_actors == 0 {
         bail!("service.num_actors must be at least 1");

@@ -206,6 +206,13 @@ pub fn describe(spec: &WorkerSpec) -> Result<Hello, PythonEnvError> {
     Ok(Worker::start(spec)?.hello)
 }
 
+/// The dims and state layout of `spec`'s env, from a worker started and stopped for the purpose.
+pub fn describe_layout(spec: &WorkerSpec) -> Result<(usize, usize, StateLayout), PythonEnvError> {
+    let hello = describe(spec)?;
+    let layout = layout_of(spec, &hello)?;
+    Ok((hello.obs_dim, hello.action_dim, layout))
+}
+
 /// The episode in flight, enough to rebuild it on a new worker.
 #[derive(Debug, Clone)]
 struct EpisodeLog {

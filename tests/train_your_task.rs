@@ -1,0 +1,214 @@
+//! Your own task, end to end, as docs/YOUR_TASK.md tells it (the suite `gymnasium`):
+//!
+//! * WallReach-v0, a task rfcl does not know (examples/your_task/): `rfcl demos record` with its
+//!   scripted policy, `rfcl demos inspect --replay`, `rfcl train` of the tutorial's config to its
+//!   bar, `rfcl eval`, and the exported policy loaded in Python with NumPy alone
+//!   (`rfcl_sim.load_policy`), whose successes on the same held-out seeds are `rfcl eval`'s;
+//! * FetchReach-v4 from Gymnasium-Robotics with no code of ours (rfcl's own MuJoCo state), a few
+//!   thousand env steps in which every demo's frontier leaves its last state;
+//! * demos that do not fit the env are refused before any process starts.
+//!
+//! The env's module is found through `PYTHONPATH`, as the tutorial says.
+mod train_support;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use train_support::*;
+
+fn example(file: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("examples/your_task")
+        .join(file)
+}
+
+/// `rfcl ARGS` with the tutorial's PYTHONPATH: (success, stdout + stderr).
+fn rfcl_cmd(args: &[&str]) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_rfcl"))
+        .args(args)
+        .env("PYTHONPATH", example(""))
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        ),
+    )
+}
+
+fn record(config: &Path, policy: &str, out: &Path) {
+    let (ok, log) = rfcl_cmd(&[
+        "demos",
+        "record",
+        "--config",
+        config.to_str().unwrap(),
+        "--policy",
+        policy,
+        "-n",
+        "5",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{log}");
+    assert!(log.contains("recorded 5 "), "{log}");
+    let (ok, report) = rfcl_cmd(&[
+        "demos",
+        "inspect",
+        out.to_str().unwrap(),
+        "--replay",
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    assert!(ok && report.contains("5 of 5 demos pass"), "{report}");
+}
+
+/// Every process of `rfcl train` (and their simulator workers) finds the env's module.
+fn train(args: Vec<String>, run_dir: &Path, log: &Path) -> Training {
+    std::env::set_var("PYTHONPATH", example(""));
+    Training::start(&args, run_dir, log)
+}
+
+#[test]
+fn the_tutorial_trains_a_task_rfcl_does_not_know() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let config = example("wall_reach.yml");
+    let demos = dir.path().join("wall_reach.h5");
+    record(&config, "wall_reach:scripted_policy", &demos);
+
+    let run_dir = dir.path().join("run");
+    let mut training = train(
+        vec![
+            config.display().to_string(),
+            format!("train.dataset_path={}", demos.display()),
+            "--run-dir".into(),
+            run_dir.display().to_string(),
+        ],
+        &run_dir,
+        &dir.path().join("rfcl.stderr"),
+    );
+    let status = training.wait(Duration::from_secs(900));
+    assert!(status.success(), "{}", training.stderr());
+    let summary = training.summary();
+    assert_reached(&summary, 0.9);
+
+    // rfcl eval, then the same held-out seeds with the NumPy policy through the same adapter.
+    let episodes = 20;
+    let (success, line) = eval_run(&run_dir, episodes);
+    assert!(success >= 0.7, "{line}");
+    let first_seed: u64 = line
+        .split("held-out seeds ")
+        .nth(1)
+        .and_then(|s| s.split("..").next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no first seed in {line:?}"));
+    let script = format!(
+        "from rfcl_sim import load_policy\n\
+         from rfcl_sim.adapters import make\n\
+         policy = load_policy({run:?})\n\
+         env = make('gymnasium', 'WallReach-v0', imports=['wall_reach'])\n\
+         wins = 0\n\
+         for k in range({episodes}):\n\
+         \x20   obs = env.reset({first_seed} + k, {{}})\n\
+         \x20   for _ in range(env.horizon):\n\
+         \x20       obs, success = env.step(policy(obs))\n\
+         \x20   wins += success\n\
+         print(wins)\n",
+        run = run_dir.display().to_string(),
+    );
+    let python = Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python");
+    let out = Command::new(&python)
+        .args(["-c", &script])
+        .env(
+            "PYTHONPATH",
+            format!(
+                "{}:{}",
+                example("").display(),
+                Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("python")
+                    .display()
+            ),
+        )
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let wins: u32 = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap();
+    let from_rfcl = (success * f64::from(episodes)).round() as u32;
+    // The same deterministic policy and env on the same seeds; the two policies' actions agree
+    // to 1e-5 (service_export.rs), so an outcome could only flip on a knife edge.
+    assert!(
+        wins.abs_diff(from_rfcl) <= 1,
+        "numpy policy {wins}/{episodes}, rfcl eval {line}"
+    );
+}
+
+#[test]
+fn a_stock_mujoco_env_trains_with_no_user_code() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let config = example("fetch_reach.yml");
+    let demos = dir.path().join("fetch_reach.h5");
+    record(&config, "fetch_reach:scripted_policy", &demos);
+    let run_dir = dir.path().join("run");
+    let mut training = train(
+        vec![
+            config.display().to_string(),
+            format!("train.dataset_path={}", demos.display()),
+            "train.steps=6000".into(),
+            "sac.eval_freq=3000".into(),
+            "service.stop_at_eval_success=null".into(),
+            "--run-dir".into(),
+            run_dir.display().to_string(),
+        ],
+        &run_dir,
+        &dir.path().join("rfcl.stderr"),
+    );
+    let status = training.wait(Duration::from_secs(600));
+    assert!(status.success(), "{}", training.stderr());
+    let summary = training.summary();
+    assert_eq!(summary["ending"], "budget", "{summary:#}");
+    // The reverse curriculum moved: every demo's frontier left its last state.
+    let demos = summary["demos"].as_array().unwrap();
+    assert_eq!(demos.len(), 5);
+    for d in demos {
+        let (t, states) = (d["t"].as_u64().unwrap(), d["states"].as_u64().unwrap());
+        assert!(t + 1 < states, "frontier still at the end: {d}");
+    }
+    assert!(summary["env_steps"].as_u64().unwrap() >= 6000);
+}
+
+#[test]
+fn demos_of_another_env_are_refused_before_anything_starts() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let fetch = dir.path().join("fetch_reach.h5");
+    record(
+        &example("fetch_reach.yml"),
+        "fetch_reach:scripted_policy",
+        &fetch,
+    );
+    let run_dir = dir.path().join("run");
+    let (ok, text) = rfcl_cmd(&[
+        "train",
+        example("wall_reach.yml").to_str().unwrap(),
+        &format!("train.dataset_path={}", fetch.display()),
+        "env.obs_dim=null",
+        "env.action_dim=null",
+        "--run-dir",
+        run_dir.to_str().unwrap(),
+    ]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("the demos do not fit env 'WallReach-v0' of suite 'gymnasium': the demos have obs 16 and action 4 values, the env 6 and 2"),
+        "{text}"
+    );
+    assert!(!run_dir.exists(), "nothing was started");
+}
