@@ -19,6 +19,36 @@ step() { printf '\n==> %s\n' "$*"; }
 fail() { printf 'setup: FAILED: %s\n' "$*" >&2; exit 1; }
 SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
 
+# ---------------------------------------------------------------- rust toolchain
+# The workspace needs the Rust of its rust-version (Cargo.toml); Debian 12's own cargo is 1.63.
+# Checked first, so that a machine without it learns so before anything is installed.
+RUST_MIN=$(sed -n 's/^rust-version = "\(.*\)"/\1/p' "$ROOT/Cargo.toml" | head -n 1)
+rust_ok() {
+  local have
+  have=$(cargo --version 2>/dev/null | awk '{print $2}')
+  [ -n "$have" ] && dpkg --compare-versions "$have" ge "$RUST_MIN"
+}
+RUSTUP_LINE="curl --proto '=https' --tlsv1.2 -sSf https://sh.rustup.rs | sh -s -- -y --profile minimal && . \"\$HOME/.cargo/env\""
+if [ $BUILD = 1 ]; then
+  # A rustup install of an earlier session is on PATH only in shells that sourced its env.
+  if ! rust_ok && [ -f "$HOME/.cargo/env" ]; then . "$HOME/.cargo/env"; fi
+  if rust_ok; then
+    step "rust toolchain: $(cargo --version) (>= $RUST_MIN)"
+  else
+    found=$(cargo --version 2>/dev/null || echo "no cargo")
+    step "rust toolchain: $found, the workspace needs >= $RUST_MIN: installing the stable toolchain with rustup into $HOME/.cargo"
+    if command -v rustup >/dev/null 2>&1; then
+      rustup toolchain install stable --profile minimal && rustup default stable \
+        || fail "rustup could not install the stable toolchain; install Rust >= $RUST_MIN, e.g.: $RUSTUP_LINE"
+    else
+      curl --proto '=https' --tlsv1.2 -sSf https://sh.rustup.rs | sh -s -- -y --profile minimal \
+        || fail "Rust >= $RUST_MIN is needed ($found) and rustup could not be fetched; run: $RUSTUP_LINE"
+      . "$HOME/.cargo/env"
+    fi
+    rust_ok || fail "Rust >= $RUST_MIN is still not the cargo on PATH ($(cargo --version 2>/dev/null || echo none)); run: $RUSTUP_LINE"
+  fi
+fi
+
 # ---------------------------------------------------------------- system packages
 # libpython3.11-dev: rfcl-sim-worker embeds Python (pyo3 links libpython3.11.so).
 APT_PKGS=(pkg-config libhdf5-dev protobuf-compiler chromium curl ca-certificates libpython3.11-dev)
