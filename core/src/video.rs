@@ -5,6 +5,10 @@ use serde::{Deserialize, Serialize};
 
 /// The largest video an eval actor may send (an animated GIF of a few hundred frames).
 pub const MAX_EVAL_VIDEO_BYTES: usize = 8 << 20;
+/// The largest episode return a video may carry, either sign: rfcl's reward is +1 per success
+/// step, so a return is at most an episode's length; beyond this it is no return (and its file
+/// name would outgrow the file system's limit).
+pub const MAX_VIDEO_RETURN: f64 = 1e7;
 
 /// What a recorded eval episode shows.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -97,6 +97,7 @@ impl Shared {
         let videos = self.videos.listing();
         view.videos = videos.videos.into_iter().map(Into::into).collect();
         view.videos_refused = videos.refused;
+        view.videos_evicted = videos.evicted;
         for bar in &mut view.demos {
             if let Some(&id) = self.demos.episode_ids.get(bar.demo as usize) {
                 bar.episode_id = id;

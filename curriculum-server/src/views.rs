@@ -219,6 +219,7 @@ impl ServerState {
             learner: None,
             videos: Vec::new(),
             videos_refused: 0,
+            videos_evicted: 0,
         }
     }
 }

@@ -1,7 +1,7 @@
 //! The one place where wire types become domain types and back. Every malformed message is
 //! rejected here with an error that names the message and the field.
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
-use rfcl_core::video::{EvalVideo, VideoMeta, MAX_EVAL_VIDEO_BYTES};
+use rfcl_core::video::{EvalVideo, VideoMeta, MAX_EVAL_VIDEO_BYTES, MAX_VIDEO_RETURN};
 
 use crate::v1;
 
@@ -305,7 +305,7 @@ pub fn learner_addr(request: &v1::WatchStageRequest) -> Result<Option<String>, W
 }
 
 /// An `EvalVideo` as the domain value: a GIF (its magic first) of at most
-/// [`MAX_EVAL_VIDEO_BYTES`], with a finite return.
+/// [`MAX_EVAL_VIDEO_BYTES`], with a finite return within ±[`MAX_VIDEO_RETURN`].
 pub fn eval_video(wire: v1::EvalVideo) -> Result<EvalVideo, WireError> {
     let bad = |field, problem: String| WireError::new("EvalVideo", field, problem);
     if wire.gif.len() > MAX_EVAL_VIDEO_BYTES {
@@ -327,10 +327,14 @@ pub fn eval_video(wire: v1::EvalVideo) -> Result<EvalVideo, WireError> {
             ),
         ));
     }
-    if !wire.episode_return.is_finite() {
+    if !wire.episode_return.is_finite() || wire.episode_return.abs() > MAX_VIDEO_RETURN {
         return Err(bad(
             "episode_return",
-            format!("expected a finite number, got {}", wire.episode_return),
+            format!(
+                "expected a finite number within ±{MAX_VIDEO_RETURN:e} (an episode's return), \
+                 got {:e}",
+                wire.episode_return
+            ),
         ));
     }
     Ok(EvalVideo {
@@ -424,12 +428,29 @@ mod tests {
         })
         .unwrap_err();
         assert!(err.problem.contains("at most 8388608 bytes"), "{err}");
-        let err = eval_video(v1::EvalVideo {
-            episode_return: f64::NAN,
-            ..wire
-        })
-        .unwrap_err();
-        assert_eq!(err.field, "episode_return");
+        for extreme in [f64::NAN, 1e308, -2e7] {
+            let err = eval_video(v1::EvalVideo {
+                episode_return: extreme,
+                ..wire.clone()
+            })
+            .unwrap_err();
+            assert_eq!(err.field, "episode_return");
+            assert!(err.problem.contains("within ±1e7"), "{err}");
+            assert_eq!(
+                tonic::Status::from(err).code(),
+                tonic::Code::InvalidArgument
+            );
+        }
+        // The largest return allowed still makes a file name the file system takes.
+        let longest = VideoMeta {
+            episode_return: -MAX_VIDEO_RETURN,
+            env_steps: u64::MAX,
+            seed: u64::MAX,
+            policy_version: u64::MAX,
+            actor_id: u32::MAX,
+            ..video.meta
+        };
+        assert!(longest.file_name().len() < 255, "{}", longest.file_name());
     }
 
     #[test]

@@ -267,6 +267,13 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
                 view.videos_refused
             );
         }
+        if view.videos_evicted > 0 {
+            let _ = write!(
+                h,
+                "; {} older one(s) removed to keep within the videos' bounds",
+                view.videos_evicted
+            );
+        }
         h.push_str(".</p>\n");
     }
     h.push_str("<h2>Actors</h2>\n<table id=\"actors\"><tr><th>actor</th><th>last seen</th><th>env steps</th><th>episodes</th><th>open leases</th><th>sim worker restarts</th></tr>\n");

@@ -318,6 +318,7 @@ fn the_eval_table_links_each_policys_recorded_episodes() {
     };
     v.videos = vec![VideoLink::from(meta)];
     v.videos_refused = 1;
+    v.videos_evicted = 3;
     let html = render_html(&v, 2);
     let link = "<a href=\"/videos/v000009_steps40000_seed1000021_success_return12.0_actor2.gif\">";
     assert!(
@@ -331,4 +332,8 @@ fn the_eval_table_links_each_policys_recorded_episodes() {
         "{html}"
     );
     assert!(html.contains("<span class=err>1 refused</span>"), "{html}");
+    assert!(
+        html.contains("; 3 older one(s) removed to keep within the videos' bounds."),
+        "{html}"
+    );
 }

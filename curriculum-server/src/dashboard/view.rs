@@ -56,9 +56,12 @@ pub struct DashboardView {
     /// Eval episodes recorded by eval actors (`eval_env.video_every`), by policy version.
     #[serde(default)]
     pub videos: Vec<VideoLink>,
-    /// Videos refused (malformed, over the limit, no run directory, a failed write).
+    /// Videos refused (malformed, no run directory, a failed write).
     #[serde(default)]
     pub videos_refused: u64,
+    /// Old videos removed to make room for newer ones (the per-actor and byte bounds).
+    #[serde(default)]
+    pub videos_evicted: u64,
 }
 
 /// An eval video the server keeps, and where the dashboard serves it.
