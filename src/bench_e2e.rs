@@ -3,7 +3,7 @@
 //!
 //! Each run is this binary's own `rfcl train` on the given config with 5 generated demos, in
 //! `async` UTD mode (learner and actors flat out: the sync mode would report the learner's update
-//! rate instead of what the actors and transports deliver), stopped with SIGINT after the given
+//! rate instead of what the actors and transports deliver), stopped with SIGTERM after the given
 //! time. The rate is taken from the learner's metrics.csv (env steps received over its own wall
 //! clock, between its first and last rows), so process start-up is not counted. Every process of
 //! the run shares this machine's cores, as in a real run.
@@ -52,12 +52,12 @@ pub fn run(config: &Path, actors: &[u32], seconds: f64) -> Result<Vec<E2eResult>
             .with_context(|| format!("starting {} train", exe.display()))?;
         std::thread::sleep(Duration::from_secs_f64(seconds));
         let pid = rustix::process::Pid::from_child(&child);
-        let _ = rustix::process::kill_process(pid, rustix::process::Signal::INT);
+        let _ = rustix::process::kill_process(pid, rustix::process::Signal::TERM);
         let deadline = Instant::now() + Duration::from_secs(60);
         while child.try_wait()?.is_none() {
             if Instant::now() > deadline {
                 let _ = child.kill();
-                bail!("rfcl train with {k} actors did not stop within 60 s of SIGINT");
+                bail!("rfcl train with {k} actors did not stop within 60 s of SIGTERM");
             }
             std::thread::sleep(Duration::from_millis(100));
         }

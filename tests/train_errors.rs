@@ -1,7 +1,7 @@
 //! `rfcl train` when something is wrong: a clear error and a non-zero exit, and no child process
 //! left behind. Bad input is refused before any process starts; a service that fails at start-up,
 //! or keeps dying mid-run, stops the run with that service's error; Ctrl-C while the services
-//! start stops them.
+//! start stops them; a SIGINT the parent left ignored stays ignored, and SIGTERM stops the run.
 mod train_support;
 
 use std::process::Command;
@@ -189,4 +189,47 @@ fn a_learner_that_keeps_dying_stops_the_run_with_a_failed_summary() {
     for pid in child_pids(&processes) {
         assert!(!alive(pid), "child {pid} outlived the run");
     }
+}
+
+/// Started as a shell script's background job is (SIGINT ignored), rfcl keeps ignoring SIGINT for
+/// the whole run, as the Unix convention has it, so that when the interrupt comes does not decide
+/// what it does; SIGTERM stops the run cleanly, with its summary, and no child outlives it.
+#[test]
+fn an_ignored_sigint_stays_ignored_and_sigterm_stops_the_run() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let demos = generate_demos(dir.path());
+    let run_dir = dir.path().join("run");
+    let args: Vec<String> = vec![
+        test_config().display().to_string(),
+        format!("train.dataset_path={}", demos.display()),
+        "--run-dir".into(),
+        run_dir.display().to_string(),
+    ];
+    let mut training =
+        Training::start_ignoring_sigint(&args, &run_dir, &dir.path().join("rfcl.stderr"));
+    // An interrupt while the services start, and one once they all run: both ignored.
+    std::thread::sleep(Duration::from_millis(300));
+    signal(training.pid(), rustix::process::Signal::INT);
+    let processes = training.processes(Duration::from_secs(120));
+    signal(training.pid(), rustix::process::Signal::INT);
+    std::thread::sleep(Duration::from_secs(5));
+    assert!(training.exited().is_none(), "{}", training.stderr());
+    assert!(
+        child_pids(&processes).into_iter().all(alive),
+        "{}",
+        training.stderr()
+    );
+    signal(training.pid(), rustix::process::Signal::TERM);
+    let status = training.wait(Duration::from_secs(120));
+    assert_eq!(status.code(), Some(130), "{}", training.stderr());
+    assert_eq!(training.summary()["ending"], "interrupted");
+    let left = wait_for(Duration::from_secs(10), || {
+        processes_of(&run_dir).is_empty().then_some(())
+    });
+    assert!(
+        left.is_some(),
+        "children outlived rfcl: {:?}",
+        processes_of(&run_dir)
+    );
 }

@@ -89,18 +89,14 @@ pub fn fail(err: impl Into<anyhow::Error>) -> ExitCode {
     ExitCode::FAILURE
 }
 
-/// Resolves on SIGINT or SIGTERM. Where no SIGTERM handler can be installed it says so and waits
-/// for SIGINT only.
+/// Resolves on SIGINT or SIGTERM (SIGTERM only where SIGINT was ignored when the process
+/// started, see [`Signals`]). Where no SIGTERM handler can be installed it says so and waits for
+/// SIGINT only.
 pub async fn shutdown_signal() {
-    match signal(SignalKind::terminate()) {
-        Ok(mut term) => {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = term.recv() => {}
-            }
-        }
+    match Signals::install() {
+        Ok(mut signals) => signals.recv().await,
         Err(e) => {
-            tracing::warn!("no SIGTERM handler ({e}); stopping on SIGINT only");
+            tracing::warn!("no SIGTERM handler ({e:#}); stopping on SIGINT only");
             let _ = tokio::signal::ctrl_c().await;
         }
     }
@@ -109,28 +105,62 @@ pub async fn shutdown_signal() {
 /// SIGINT and SIGTERM, installed once and received as often as they come (a first signal to
 /// finish cleanly, a second to abort). Install it first thing, so that a signal during start-up
 /// is handled rather than fatal.
+///
+/// The Unix convention holds: a process whose parent left SIGINT ignored (a background job of a
+/// shell script, `nohup`) keeps ignoring it for its whole life, so that an interrupt behaves the
+/// same whenever it comes, and its children inherit that; SIGTERM always stops it cleanly.
+/// Without this, SIGINT was ignored until the handler replaced the inherited disposition and
+/// honoured after, and a run's fate depended on when the interrupt came.
 #[derive(Debug)]
 pub struct Signals {
-    interrupt: Signal,
+    /// `None` where SIGINT was ignored at start-up.
+    interrupt: Option<Signal>,
     terminate: Signal,
 }
 
 impl Signals {
     /// Must be called within a tokio runtime.
     pub fn install() -> Result<Self> {
+        let interrupt = if sigint_ignored() {
+            tracing::info!("SIGINT is ignored (the parent's choice): stopping on SIGTERM only");
+            None
+        } else {
+            Some(signal(SignalKind::interrupt()).context("installing the SIGINT handler")?)
+        };
         Ok(Self {
-            interrupt: signal(SignalKind::interrupt()).context("installing the SIGINT handler")?,
+            interrupt,
             terminate: signal(SignalKind::terminate()).context("installing the SIGTERM handler")?,
         })
     }
 
     /// The next SIGINT or SIGTERM.
     pub async fn recv(&mut self) {
-        tokio::select! {
-            _ = self.interrupt.recv() => {}
-            _ = self.terminate.recv() => {}
+        match &mut self.interrupt {
+            Some(interrupt) => tokio::select! {
+                _ = interrupt.recv() => {}
+                _ = self.terminate.recv() => {}
+            },
+            None => {
+                self.terminate.recv().await;
+            }
         }
     }
+}
+
+/// Whether SIGINT's disposition is "ignore", from the kernel's `SigIgn` mask of the process
+/// (`/proc/self/status`). Asked before any handler of ours replaces it; false where it cannot be
+/// read.
+fn sigint_ignored() -> bool {
+    std::fs::read_to_string("/proc/self/status").is_ok_and(|status| sigint_in_ignored_mask(&status))
+}
+
+/// Whether the `SigIgn:` line of a `/proc/<pid>/status` text has SIGINT's bit (signal 2: bit 1).
+fn sigint_in_ignored_mask(status: &str) -> bool {
+    status
+        .lines()
+        .find_map(|line| line.strip_prefix("SigIgn:"))
+        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+        .is_some_and(|mask| mask & (1 << 1) != 0)
 }
 
 #[cfg(test)]
@@ -156,5 +186,17 @@ mod tests {
     fn signals_install_inside_a_runtime() {
         let rt = Flavor::CurrentThread.build().unwrap();
         rt.block_on(async { Signals::install().unwrap() });
+    }
+
+    /// SIGINT is signal 2, bit 1 of the kernel's mask: `0000000000000002` and `0000000001001006`
+    /// have it, `0000000000001000` (SIGPIPE, signal 13, alone) does not.
+    #[test]
+    fn sigint_is_read_from_the_ignored_mask() {
+        let status =
+            |mask: &str| format!("Name:\trfcl\nSigBlk:\t0000000000000000\nSigIgn:\t{mask}\n");
+        assert!(sigint_in_ignored_mask(&status("0000000000000002")));
+        assert!(sigint_in_ignored_mask(&status("0000000001001006")));
+        assert!(!sigint_in_ignored_mask(&status("0000000000001000")));
+        assert!(!sigint_in_ignored_mask("Name:\trfcl\n"));
     }
 }

@@ -106,11 +106,28 @@ pub struct Training {
 }
 
 impl Training {
-    /// `rfcl train <args>`; `run_dir` is where the run lives (for the helpers).
+    /// `rfcl train <args>`; `run_dir` is where the run lives (for the helpers). SIGINT starts as
+    /// its default whatever this test process inherited (rfcl keeps an inherited "ignore": the
+    /// Unix convention), so that the tests' Ctrl-C reaches it.
     pub fn start(args: &[String], run_dir: &Path, log: &Path) -> Training {
+        let mut command = Command::new("env");
+        command.arg("--default-signal=INT").arg(rfcl());
+        Self::spawn(command, args, run_dir, log)
+    }
+
+    /// `rfcl train <args>` started with SIGINT ignored, as a shell script's background job is.
+    pub fn start_ignoring_sigint(args: &[String], run_dir: &Path, log: &Path) -> Training {
+        let mut command = Command::new("sh");
+        command
+            .args(["-c", "trap '' INT; exec \"$0\" \"$@\""])
+            .arg(rfcl());
+        Self::spawn(command, args, run_dir, log)
+    }
+
+    fn spawn(mut command: Command, args: &[String], run_dir: &Path, log: &Path) -> Training {
         let stderr = std::fs::File::create(log).unwrap();
         let child = child::spawn_locked(
-            Command::new(rfcl())
+            command
                 .arg("train")
                 .args(args)
                 .stdin(Stdio::null())
