@@ -55,7 +55,7 @@ impl Bridge {
                 let bad_input = e
                     .get_type(py)
                     .name()
-                    .is_ok_and(|name| name.to_string() == "AdapterError");
+                    .is_ok_and(|name| name == "AdapterError");
                 if bad_input {
                     e.value(py).to_string()
                 } else {
