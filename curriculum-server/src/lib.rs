@@ -37,6 +37,7 @@ pub use stage::{ReplanError, Stage, StageChange, StageMachine, StageStatus};
 // * `dashboard`: rendering of the views (page, charts, metrics); `server`: the process's tasks.
 pub mod bench;
 pub mod dashboard;
+pub mod dashboard_listener;
 pub mod grpc;
 pub mod learner_link;
 pub mod leases;

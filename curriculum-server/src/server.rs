@@ -29,6 +29,7 @@ use tokio::time::Instant;
 use tonic::server::NamedService;
 use tonic::service::interceptor::InterceptedService;
 
+use crate::dashboard_listener::{self, DashboardListener};
 use crate::grpc::CurriculumService;
 use crate::service::Shared;
 use crate::state::unix_now;
@@ -353,7 +354,13 @@ pub async fn serve(
         tasks.spawn("snapshot writer", snapshot_loop(shared.clone(), dir));
     }
 
-    let dashboard = axum::serve(bound.dashboard, dashboard_router(shared.clone()))
+    let listener = DashboardListener::new(
+        bound.dashboard,
+        dashboard_listener::MAX_CONNECTIONS,
+        dashboard_listener::IDLE_TIMEOUT,
+        shared.dashboard_refused.clone(),
+    );
+    let dashboard = axum::serve(listener, dashboard_router(shared.clone()))
         .with_graceful_shutdown(stopped(&shared));
     tasks.spawn("dashboard server", async move {
         dashboard.await.context("dashboard server")

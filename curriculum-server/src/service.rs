@@ -37,6 +37,9 @@ pub struct Shared {
     pub learner: Arc<LearnerLink>,
     /// Eval videos sent by eval actors (kept in the run directory).
     pub videos: Arc<VideoStore>,
+    /// Dashboard connections closed at once for being over the dashboard's bound
+    /// ([`crate::dashboard_listener`]).
+    pub dashboard_refused: Arc<AtomicU64>,
 }
 
 impl Shared {
@@ -54,6 +57,7 @@ impl Shared {
             oversized_requests: Arc::new(AtomicU64::new(0)),
             learner: Arc::new(LearnerLink::new(None)),
             videos: Arc::new(VideoStore::open(None).expect("no directory to list")),
+            dashboard_refused: Arc::new(AtomicU64::new(0)),
         }
     }
 
@@ -93,6 +97,7 @@ impl Shared {
         view.unauthenticated_calls = self.guard.refused();
         view.snapshot_failures = self.snapshot_failures.load(Ordering::Relaxed);
         view.oversized_requests = self.oversized_requests.load(Ordering::Relaxed);
+        view.dashboard_refused = self.dashboard_refused.load(Ordering::Relaxed);
         view.learner = self.learner.panel(now);
         let videos = self.videos.listing();
         view.videos = videos.videos.into_iter().map(Into::into).collect();

@@ -207,6 +207,7 @@ impl ServerState {
             snapshot_failures: 0,
             // Known only to the gRPC service: `Shared::view` fills it in.
             unauthenticated_calls: 0,
+            dashboard_refused: 0,
             oversized_requests: 0,
             solved_frac: reverse.solved_frac(),
             demos,

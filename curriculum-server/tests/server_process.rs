@@ -5,6 +5,8 @@
 mod common;
 
 use common::*;
+use std::time::Duration;
+
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rfcl_core::demo::DemoSet;
@@ -898,4 +900,78 @@ async fn a_run_in_stage_1_refuses_changed_reverse_options_on_resume() {
         &["reverse.reverse_step_size: 4 -> 8", "stage 1"],
     )
     .await;
+}
+
+/// Whatever the dashboard's clients do, training goes on: with the server at 1,024 open files,
+/// 2,000 idle connections to its dashboard (anyone who can reach the port can open them, no token
+/// needed) leave the gRPC service answering with the run's token; the dashboard keeps at most
+/// its bound of them open, closes the rest at once and counts them, and serves again as soon as
+/// they go.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_idle_dashboard_connections_cannot_starve_training() {
+    use rfcl_curriculum::dashboard_listener::MAX_CONNECTIONS;
+    const FLOOD: usize = 2000;
+    // This test holds the flood's sockets itself: its own limit must allow them.
+    let raised = std::process::Command::new("prlimit")
+        .args(["--pid", &std::process::id().to_string(), "--nofile=8192:"])
+        .status()
+        .unwrap();
+    assert!(
+        raised.success(),
+        "prlimit could not raise this test's open-file limit"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let files = RunFiles::write(dir.path(), 30.0);
+    let server = ServerProcess::start_with_file_limit(&files.args("--run-dir", &[]), 1024);
+    let addr = server
+        .dashboard
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_string();
+    let flood: Vec<std::net::TcpStream> = (0..FLOOD)
+        .map(|i| {
+            std::net::TcpStream::connect(&addr)
+                .unwrap_or_else(|e| panic!("connection {i} to the dashboard: {e}"))
+        })
+        .collect();
+    // Training's calls go through.
+    let mut client = server.client().await;
+    let lease = tokio::time::timeout(Duration::from_secs(10), client.acquire(acquire_req(0)))
+        .await
+        .expect("Acquire answered within 10 s")
+        .unwrap()
+        .into_inner();
+    assert!(
+        client
+            .report(report_for(&lease, true, 1.0))
+            .await
+            .unwrap()
+            .into_inner()
+            .applied
+    );
+    // The dashboard kept its bound and closed the others, counting each.
+    let view = state_view(&mut client).await;
+    let refused = view.dashboard_refused as usize;
+    assert!(
+        refused + MAX_CONNECTIONS >= FLOOD && refused < FLOOD,
+        "{refused} of {FLOOD} refused with a bound of {MAX_CONNECTIONS}"
+    );
+    // Once the flood goes, the dashboard serves again, and /metrics shows the count.
+    drop(flood);
+    let mut metrics = String::new();
+    for _ in 0..50 {
+        let out = std::process::Command::new("curl")
+            .args(["-sf", "-m", "2", &format!("{}metrics", server.dashboard)])
+            .output()
+            .unwrap();
+        if out.status.success() {
+            metrics = String::from_utf8(out.stdout).unwrap();
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert!(
+        metrics.contains("rfcl_curriculum_dashboard_connections_refused_total"),
+        "{metrics}"
+    );
 }

@@ -99,7 +99,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 <span>sim worker restarts {restarts}</span>
 <span>demos solved {solved:.0}%</span></p>
 <p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}, not the lease holder {nothold}, over the time limit {overlim}</span>
-<span>unauthenticated calls {unauth}</span><span>oversized requests {oversized}</span><span>actors forgotten {forgotten}</span><span>snapshot failures {snapfail}</span></p>
+<span>unauthenticated calls {unauth}</span><span>oversized requests {oversized}</span><span>dashboard connections refused {dashrefused}</span><span>actors forgotten {forgotten}</span><span>snapshot failures {snapfail}</span></p>
 "#,
         name = esc(&view.run_name),
         env = esc(&view.env_id),
@@ -126,6 +126,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         overlim = view.refused_reports.over_time_limit,
         unauth = view.unauthenticated_calls,
         oversized = view.oversized_requests,
+        dashrefused = view.dashboard_refused,
         forgotten = view.actors_forgotten,
         snapfail = view.snapshot_failures,
     );

@@ -79,6 +79,12 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
     );
     counter(
         &mut r,
+        "dashboard_connections_refused",
+        "Dashboard connections closed at once for being over the dashboard's bound",
+        view.dashboard_refused,
+    );
+    counter(
+        &mut r,
         "sim_worker_restarts",
         "Simulator worker processes restarted after a crash or hang (episode replayed)",
         view.sim_worker_restarts,

@@ -33,6 +33,9 @@ pub struct DashboardView {
     /// Calls refused OUT_OF_RANGE for a request over the server's message limit since it started.
     #[serde(default)]
     pub oversized_requests: u64,
+    /// Dashboard connections closed at once for being over the dashboard's bound.
+    #[serde(default)]
+    pub dashboard_refused: u64,
     /// Actor ids dropped from `actors` after `service.forget_actors_after_s` without a call.
     #[serde(default)]
     pub actors_forgotten: u64,

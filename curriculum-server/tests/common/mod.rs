@@ -120,6 +120,19 @@ impl ServerProcess {
     pub fn start_with_env(args: &[&str], env: &[(&str, &Path)]) -> ServerProcess {
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_curriculum-server"));
         cmd.args(args).envs(env.iter().map(|(k, v)| (k, v)));
+        Self::start_command(cmd)
+    }
+
+    /// Starts the server with at most `files` open file descriptors (util-linux `prlimit`).
+    pub fn start_with_file_limit(args: &[&str], files: u32) -> ServerProcess {
+        let mut cmd = Command::new("prlimit");
+        cmd.arg(format!("--nofile={files}:{files}"))
+            .arg(env!("CARGO_BIN_EXE_curriculum-server"))
+            .args(args);
+        Self::start_command(cmd)
+    }
+
+    fn start_command(mut cmd: Command) -> ServerProcess {
         let (child, ready) =
             child::start_service("curriculum-server", child::with_token(&mut cmd, TEST_TOKEN));
         ServerProcess {
