@@ -10,6 +10,25 @@ use rfcl_actor::replay::{
 use rfcl_actor::Env;
 use rfcl_core::demo::DemoSet;
 
+/// Without `--replay`, for the envs rfcl checks natively (PointMaze): every state of every demo is
+/// tried as a reset state, and the first refused one named; true when all are valid (and for the
+/// Python suites, whose states only their simulator can judge: `--replay` does).
+pub fn reset_states(set: &DemoSet) -> Result<bool> {
+    if set.env_id.as_deref() != Some(pointmaze::ENV_ID) {
+        return Ok(true);
+    }
+    match rfcl_actor::replay::first_refused_state(&mut PointMaze::new(0), &set.demos)? {
+        None => {
+            println!("every state of every demo is a valid reset state");
+            Ok(true)
+        }
+        Some((demo, episode, t, why)) => {
+            println!("demo {demo} (episode {episode}) state {t} is not a valid reset state: {why}");
+            Ok(false)
+        }
+    }
+}
+
 /// Checks every demo of `set`, printing one line each; true when all pass. The env is PointMaze
 /// for PointMaze files, else the one `config` describes.
 pub fn check(set: &DemoSet, config: Option<&Path>) -> Result<bool> {

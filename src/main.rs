@@ -350,7 +350,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let demos = rfcl_core::demo::DemoSet::load(&file)?;
             print!("{}", demos.summary());
             if !replay.replay {
-                return Ok(ExitCode::SUCCESS);
+                return Ok(match demos_replay::reset_states(&demos)? {
+                    true => ExitCode::SUCCESS,
+                    false => ExitCode::FAILURE,
+                });
             }
             match demos_replay::check(&demos, replay.config.as_deref())? {
                 true => Ok(ExitCode::SUCCESS),

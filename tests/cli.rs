@@ -210,6 +210,71 @@ fn generated_pointmaze_demos_inspect_cleanly() {
     );
 }
 
+/// A demo state the env cannot start from (PointMaze's collision flag at 50) is found when the
+/// file is read, before any run: `rfcl demos inspect` names the demo, the state and the field and
+/// exits 1, and `rfcl train` refuses the file before any process starts.
+#[test]
+fn a_bad_demo_state_is_refused_when_the_file_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = dir.path().join("pm.h5");
+    let out = rfcl(&[
+        "demos",
+        "generate",
+        "--env",
+        "pointmaze",
+        "-n",
+        "2",
+        "--out",
+        good.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = rfcl(&["demos", "inspect", good.to_str().unwrap()]);
+    assert!(out.status.success());
+    assert!(String::from_utf8_lossy(&out.stdout)
+        .contains("every state of every demo is a valid reset state"));
+
+    let bad = dir.path().join("bad.h5");
+    let mut set = {
+        let _guard = rfcl_testkit::hdf5::fork_guard();
+        rfcl_core::demo::DemoSet::load(&good).unwrap()
+    };
+    let dim = set.state_dim;
+    set.demos[1].env_states[5 * dim + dim - 1] = 50.0;
+    let episode = set.demos[1].episode_id;
+    rfcl_testkit::demos::write_demo_set(&set, &bad);
+    let out = rfcl(&["demos", "inspect", bad.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{text}");
+    assert!(
+        text.contains(&format!(
+            "demo 1 (episode {episode}) state 5 is not a valid reset state: "
+        )) && text.contains("50 is neither 0 nor 1"),
+        "{text}"
+    );
+    let run_dir = dir.path().join("run");
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/pointmaze_test.yml");
+    let out = rfcl(&[
+        "train",
+        config.to_str().unwrap(),
+        &format!("train.dataset_path={}", bad.display()),
+        "--run-dir",
+        run_dir.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains(&format!(
+            "demo 1 (episode {episode}) state 5 is not a valid reset state"
+        )),
+        "{err}"
+    );
+    assert!(!run_dir.exists(), "nothing started");
+}
+
 #[test]
 fn unbuilt_subcommands_say_so_and_fail() {
     let out = rfcl(&[

@@ -103,7 +103,6 @@ impl ReplayCheck {
 /// Checks `demo` on `env` (spec 2.4: each reset first resets with the demo's seed and options).
 /// Fails only when the simulator itself fails; a refused state is a finding, not an error.
 pub fn check_demo(env: &mut dyn Env, demo: &Demo) -> Result<ReplayCheck, EnvError> {
-    let (seed, options) = (demo.reset.seed, &demo.reset.options);
     let parts = env.state_layout().parts();
     let states: Vec<&[f32]> = demo.env_states.chunks_exact(demo.state_dim).collect();
     let actions: Vec<&[f32]> = demo.actions.chunks_exact(demo.action_dim).collect();
@@ -118,13 +117,9 @@ pub fn check_demo(env: &mut dyn Env, demo: &Demo) -> Result<ReplayCheck, EnvErro
         open_loop: OpenLoop::default(),
     };
     for (t, state) in states.iter().enumerate() {
-        match env.reset_to_state(seed, options, state) {
-            Ok(_) => {}
-            Err(EnvError::Simulator { message }) => return Err(EnvError::Simulator { message }),
-            Err(e) => {
-                check.invalid_state = Some((t, e.to_string()));
-                return Ok(check);
-            }
+        if let Some(why) = refused_as_reset_state(env, demo, state)? {
+            check.invalid_state = Some((t, why));
+            return Ok(check);
         }
         let restored = max_abs_difference(&env.get_state(), state);
         check.restore_error = check.restore_error.max(restored);
@@ -142,6 +137,36 @@ pub fn check_demo(env: &mut dyn Env, demo: &Demo) -> Result<ReplayCheck, EnvErro
     }
     check.open_loop = open_loop(env, demo, &parts, &states, &actions)?;
     Ok(check)
+}
+
+/// Why `env` refuses `state` of `demo` as a reset state (after the demo's seed and options), or
+/// `None` when it takes it. Fails only when the simulator itself fails.
+pub fn refused_as_reset_state(
+    env: &mut dyn Env,
+    demo: &Demo,
+    state: &[f32],
+) -> Result<Option<String>, EnvError> {
+    match env.reset_to_state(demo.reset.seed, &demo.reset.options, state) {
+        Ok(_) => Ok(None),
+        Err(EnvError::Simulator { message }) => Err(EnvError::Simulator { message }),
+        Err(e) => Ok(Some(e.to_string())),
+    }
+}
+
+/// The first state of any demo of `demos` that `env` refuses as a reset state: (demo index, its
+/// episode id, state index, why). Every state is tried, in order.
+pub fn first_refused_state(
+    env: &mut dyn Env,
+    demos: &[Demo],
+) -> Result<Option<(usize, u64, usize, String)>, EnvError> {
+    for (i, demo) in demos.iter().enumerate() {
+        for (t, state) in demo.env_states.chunks_exact(demo.state_dim).enumerate() {
+            if let Some(why) = refused_as_reset_state(env, demo, state)? {
+                return Ok(Some((i, demo.episode_id, t, why)));
+            }
+        }
+    }
+    Ok(None)
 }
 
 impl ReplayCheck {

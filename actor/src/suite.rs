@@ -74,6 +74,22 @@ pub fn native_dims(env: &EnvConfig) -> Result<(usize, usize), SuiteError> {
 /// restore. For a Python suite a worker is started and stopped to ask the env.
 pub fn check_demos_fit(env: &EnvConfig, set: &DemoSet) -> Result<(), SuiteError> {
     check_supported(env)?;
+    let refuse = |why: String| SuiteError::DemosDoNotFit {
+        suite: python::suite_name(env.suite),
+        env_id: env.env_id.clone(),
+        why,
+    };
+    if env.suite == Suite::Pointmaze {
+        // Native and cheap: every state of every demo is tried as a reset state, so that a bad
+        // one is refused here rather than ending an actor at its first lease on it.
+        let found = crate::replay::first_refused_state(&mut PointMaze::new(0), &set.demos)
+            .map_err(|e| refuse(e.to_string()))?;
+        if let Some((demo, episode, t, why)) = found {
+            return Err(refuse(format!(
+                "demo {demo} (episode {episode}) state {t} is not a valid reset state: {why}"
+            )));
+        }
+    }
     let (obs_dim, action_dim, layout) = match env.suite {
         Suite::Pointmaze => (
             pointmaze::OBS_DIM,
@@ -89,11 +105,7 @@ pub fn check_demos_fit(env: &EnvConfig, set: &DemoSet) -> Result<(), SuiteError>
         (obs_dim, action_dim, &layout),
         (set.obs_dim, set.action_dim, &set.state_layout),
     )
-    .map_err(|why| SuiteError::DemosDoNotFit {
-        suite: python::suite_name(env.suite),
-        env_id: env.env_id.clone(),
-        why,
-    })
+    .map_err(refuse)
 }
 
 /// The first way demos of (obs dim, action dim, state layout) `demos` differ from an env's.
@@ -215,12 +227,28 @@ mod tests {
             "the demos' states are position (2), vel (2) (4 values), the env's pos (2), vel (2) \
              (4 values)"
         );
-        // PointMaze's own demos fit it.
-        let set = crate::pointmaze::demos::demo_set(
-            crate::pointmaze::demos::generate_demos(1, 0),
+        // PointMaze's own demos fit it; one with a collision flag of 50 in a state is refused,
+        // naming the demo, the state and the field.
+        let mut set = crate::pointmaze::demos::demo_set(
+            crate::pointmaze::demos::generate_demos(2, 0),
             "x.h5",
         );
         assert_eq!(check_demos_fit(&EnvConfig::default(), &set), Ok(()));
+        let dim = set.state_dim;
+        set.demos[1].env_states[7 * dim + dim - 1] = 50.0;
+        let err = check_demos_fit(&EnvConfig::default(), &set)
+            .unwrap_err()
+            .to_string();
+        let expected = format!(
+            "demo 1 (episode {}) state 7 is not a valid reset state: ",
+            set.demos[1].episode_id
+        );
+        assert!(
+            err.contains(&expected)
+                && err.contains("collided")
+                && err.contains("50 is neither 0 nor 1"),
+            "{err}"
+        );
     }
 
     #[test]
