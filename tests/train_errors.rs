@@ -77,22 +77,25 @@ fn no_demos_is_refused_before_anything_starts() {
 fn a_service_that_fails_at_start_stops_the_run_with_its_error() {
     require_services();
     let dir = tempfile::tempdir().unwrap();
-    let bogus = dir.path().join("demos.h5");
-    std::fs::write(&bogus, "not an HDF5 file\n").unwrap();
+    let demos = generate_demos(dir.path());
+    // The curriculum server's port is taken: it fails at start-up, after rfcl's own checks.
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port();
     let run_dir = dir.path().join("run");
     let out = rfcl_train(&[
         test_config().to_str().unwrap(),
-        &format!("train.dataset_path={}", bogus.display()),
+        &format!("train.dataset_path={}", demos.display()),
+        &format!("service.curriculum_port={port}"),
         "--run-dir",
         run_dir.to_str().unwrap(),
     ]);
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
-    // The curriculum server loads the demos first: its exit and the tail of its log.
+    // Its exit and the tail of its log, which names the port.
     assert!(
         stderr.contains("curriculum-server exited before it was ready (exit status 1)")
             && stderr.contains("logs/curriculum-server.log (last lines)")
-            && stderr.contains("demos.h5"),
+            && stderr.contains(&port.to_string()),
         "{stderr}"
     );
     assert!(!run_dir.join("processes.json").exists());
