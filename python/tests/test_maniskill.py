@@ -115,3 +115,27 @@ def test_the_bridge_speaks_frames_and_never_raises():
     assert status == b.STATUS_EXCEPTION and msg.startswith(b"Traceback (most recent call last)")
     assert reset(1)[0] == b.STATUS_OK
     br.close()
+
+
+def test_an_env_registered_by_your_own_module_through_imports():
+    """A ManiSkill3 env of the user's own package: made after importing the modules of the run
+    config's env.imports, with the registered horizon; without the import it is unknown."""
+    import sys
+    from pathlib import Path
+
+    from rfcl_sim.adapters import AdapterError, make
+
+    tests = str(Path(__file__).resolve().parent)
+    if tests not in sys.path:
+        sys.path.insert(0, tests)
+    with pytest.raises(AdapterError, match="has no env 'YourPickCube-v1'.*env.imports"):
+        make("maniskill3", "YourPickCube-v1")
+    adapter = make("maniskill3", "YourPickCube-v1", imports=["ms_user_envs"])
+    try:
+        assert adapter.horizon == 40
+        obs = adapter.reset(3, {})
+        state = adapter.get_state()
+        adapter.reset(3, {})
+        np.testing.assert_allclose(adapter.set_state(state), obs, atol=1e-5)
+    finally:
+        adapter.close()
