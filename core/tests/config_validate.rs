@@ -432,3 +432,28 @@ fn env_imports_are_for_the_gymnasium_and_maniskill3_suites() {
         assert!(config.validate().is_ok(), "{suite:?}");
     }
 }
+
+/// `env.success` names a callable for the gymnasium suite only.
+#[test]
+fn env_success_is_a_callable_of_the_gymnasium_suite() {
+    use rfcl_core::config::Suite;
+    let err = rejected(|c| c.env.success = Some("my_envs:reached".into()));
+    assert!(
+        err.to_string()
+            .contains("only the gymnasium suite takes a success callable"),
+        "{err}"
+    );
+    let err = rejected(|c| {
+        c.env.suite = Suite::Gymnasium;
+        c.env.success = Some("reached".into());
+    });
+    assert!(
+        err.to_string()
+            .contains("expected module:callable, got 'reached'"),
+        "{err}"
+    );
+    assert!(accepted(|c| {
+        c.env.suite = Suite::Gymnasium;
+        c.env.success = Some("my_envs:reached".into());
+    }));
+}

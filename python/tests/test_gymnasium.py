@@ -114,10 +114,28 @@ def test_bad_envs_are_refused_in_one_line(env_id, kwargs, message):
     assert text.startswith("gymnasium: "), text
 
 
+def test_a_success_callable_serves_an_env_that_reports_none():
+    """Gymnasium's own InvertedPendulum-v5: no success in its info, rfcl's MuJoCo state, and the
+    success of the callable the config names (env.success)."""
+    a = make("gymnasium", "InvertedPendulum-v5", success="gym_fixtures:pendulum_upright")
+    assert [name for name, _, _ in a.state_layout()] == ["qpos", "qvel"]
+    a.reset(1, {})
+    upright = np.zeros(4, dtype=np.float32)
+    a.set_state(upright)
+    assert a.step(np.zeros(1, dtype=np.float32))[1]
+    tilted = upright.copy()
+    tilted[1] = 0.15
+    a.reset(1, {})
+    a.set_state(tilted)
+    assert not a.step(np.zeros(1, dtype=np.float32))[1]
+    with pytest.raises(AdapterError, match="'gym_fixtures' has no 'nothing'"):
+        make("gymnasium", "InvertedPendulum-v5", success="gym_fixtures:nothing")
+
+
 def test_an_env_that_never_says_success_is_named_at_its_first_step():
     a = make("gymnasium", "gym_fixtures:toy", max_episode_steps=10, env_kwargs={"success": False})
     a.reset(0, {})
-    with pytest.raises(AdapterError, match="reports no 'success' \\(or 'is_success'\\) in its step"):
+    with pytest.raises(AdapterError, match="reports no 'success' \\(or 'is_success'\\) in its step.*env.success"):
         a.step(np.zeros(2, dtype=np.float32))
 
 

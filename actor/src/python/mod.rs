@@ -150,7 +150,8 @@ impl WorkerSpec {
 }
 
 /// The keyword arguments an adapter is made with (`rfcl_sim.adapters.make`), from the run's env
-/// config: `max_episode_steps`, and `control_mode`, `env_kwargs` and `imports` where given.
+/// config: `max_episode_steps`, and `control_mode`, `env_kwargs`, `imports` and `success` where
+/// given.
 pub fn env_options(env: &EnvConfig) -> serde_json::Value {
     let mut options = serde_json::Map::new();
     options.insert("max_episode_steps".into(), env.max_episode_steps.into());
@@ -162,6 +163,9 @@ pub fn env_options(env: &EnvConfig) -> serde_json::Value {
     }
     if !env.imports.is_empty() {
         options.insert("imports".into(), env.imports.clone().into());
+    }
+    if let Some(success) = &env.success {
+        options.insert("success".into(), success.clone().into());
     }
     options.into()
 }

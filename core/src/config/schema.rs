@@ -67,6 +67,9 @@ pub struct EnvConfig {
     /// Python modules the simulator worker imports before it makes the env, e.g. the package
     /// that registers your own envs (`gymnasium` and `maniskill3` suites).
     pub imports: Vec<String>,
+    /// `module:callable(env, obs, info) -> bool`: the success of an env whose step info reports
+    /// none (`gymnasium` suite; `None` = the info's `success` or `is_success`).
+    pub success: Option<String>,
     /// Expected observation dim; checked against demos and the env when set.
     pub obs_dim: Option<u32>,
     /// Expected action dim; checked against demos and the env when set.
@@ -532,6 +535,7 @@ impl Default for EnvConfig {
             control_mode: None,
             env_kwargs: serde_json::Map::new(),
             imports: Vec::new(),
+            success: None,
             obs_dim: None,
             action_dim: None,
         }

@@ -5,8 +5,8 @@ use std::ops::Bound::{self, Excluded, Included, Unbounded};
 
 use super::error::ConfigError;
 use super::{
-    ForwardConfig, LevelMix, ReverseConfig, RunConfig, ScoreTransform, StagePlan, TrainConfig,
-    TrainMode,
+    ForwardConfig, LevelMix, ReverseConfig, RunConfig, ScoreTransform, StagePlan, Suite,
+    TrainConfig, TrainMode,
 };
 
 /// The range of `eval_env.video_size`: the actors' video encoder takes frames up to 1024 pixels.
@@ -70,6 +70,20 @@ impl RunConfig {
                 !module.is_empty() && !module.contains(char::is_whitespace),
                 "env.imports",
                 || format!("'{module}' is not a Python module name"),
+            )?;
+        }
+        if let Some(success) = &env.success {
+            ensure(env.suite == Suite::Gymnasium, "env.success", || {
+                "only the gymnasium suite takes a success callable; the other suites report \
+                 success themselves"
+                    .into()
+            })?;
+            ensure(
+                success
+                    .split_once(':')
+                    .is_some_and(|(m, f)| !m.is_empty() && !f.is_empty()),
+                "env.success",
+                || format!("expected module:callable, got '{success}'"),
             )?;
         }
         at_least_opt("env.obs_dim", env.obs_dim, 1)?;

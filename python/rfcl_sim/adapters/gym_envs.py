@@ -30,7 +30,9 @@ Observation wrappers around the env are applied to a restored state's observatio
 first (spec 2.4 step 6). Dict and tuple observations are flattened (``gymnasium.spaces.flatten``).
 
 **Success** is ``info["success"]``, or ``info["is_success"]`` (Gymnasium-Robotics' name), of
-every step. **Actions** must be a bounded ``Box``; rfcl's actions in ``[-1, 1]`` are mapped
+every step; or, for an env that reports neither (Gymnasium's own MuJoCo envs), what the callable
+the config names in ``env.success`` (``module:callable``) says when called with the unwrapped env,
+the step's observation and its info. **Actions** must be a bounded ``Box``; rfcl's actions in ``[-1, 1]`` are mapped
 affinely onto it. Episodes are never ended by the adapter: ``terminated`` and ``truncated`` are
 ignored (rfcl owns time limits, spec 5.6); the horizon is ``max_episode_steps`` from the config,
 else the env's registered one.
@@ -52,7 +54,9 @@ from .fields import check_horizon, check_make_kwargs, headless_gl, render_env_kw
 
 SUITE = "gymnasium"
 #: The options :func:`make` understands: those of the other suites, plus ``imports``.
-KWARGS = ("max_episode_steps", "control_mode", "env_kwargs", "seed", "render_size", "imports")
+KWARGS = (
+    "max_episode_steps", "control_mode", "env_kwargs", "seed", "render_size", "imports", "success",
+)
 #: Largest difference between a state and the state read back after restoring it.
 RESTORE_TOLERANCE = 1e-5
 
@@ -76,7 +80,8 @@ def entry_point(suite: str, spec: str) -> Callable[..., Any]:
 
 
 def make(env_id: str, **kwargs: Any) -> "GymnasiumAdapter":
-    check_make_kwargs(SUITE, env_id, {k: v for k, v in kwargs.items() if k != "imports"})
+    own = ("imports", "success")
+    check_make_kwargs(SUITE, env_id, {k: v for k, v in kwargs.items() if k not in own})
     return GymnasiumAdapter(env_id, **kwargs)
 
 
@@ -92,6 +97,7 @@ class GymnasiumAdapter(Adapter):
         seed: int | None = None,
         render_size: int | None = None,
         imports: list[str] | None = None,
+        success: str | None = None,
     ) -> None:
         import gymnasium as gym
 
@@ -102,6 +108,7 @@ class GymnasiumAdapter(Adapter):
                 "env_kwargs, which go to the env's constructor"
             )
         import_modules(SUITE, imports)
+        self._success = None if success is None else entry_point(SUITE, success)
         self.render_size = check_render_size(SUITE, render_size)
         kwargs = dict(env_kwargs or {})
         if self.render_size is not None:
@@ -166,7 +173,10 @@ class GymnasiumAdapter(Adapter):
         a = self._check_action(action)
         a = self._low + (np.clip(a, -1.0, 1.0) + 1.0) * 0.5 * (self._high - self._low)
         obs, _reward, _terminated, _truncated, info = self._wrapped.step(a)
-        return self._flat_obs(obs, "step"), success_of(self.env_id, info)
+        flat = self._flat_obs(obs, "step")
+        if self._success is not None:
+            return flat, bool(self._success(self._env, obs, info))
+        return flat, success_of(self.env_id, info)
 
     def get_state(self) -> np.ndarray:
         return np.asarray(self._state.get(), dtype=np.float32).reshape(-1)
@@ -278,7 +288,7 @@ def success_of(env_id: str, info: dict[str, Any]) -> bool:
     raise AdapterError(
         f"{SUITE}: {env_id} reports no 'success' (or 'is_success') in its step info (it has "
         f"{sorted(info)}); rfcl's reward is +1 per success step, so the env must say when it "
-        "succeeds"
+        "succeeds, or env.success must name a module:callable(env, obs, info) that does"
     )
 
 
