@@ -116,6 +116,27 @@ def policy_episode(adapter: Any, act: Callable[[np.ndarray], Any], seed: int,
     )
 
 
+def successful_episodes(adapter: Any, act: Callable[[np.ndarray], Any], n: int, first_seed: int,
+                        attempts: int, post_success_steps: int, log
+                        ) -> tuple[list[Trajectory], int]:
+    """Episodes of ``act`` from seeds ``first_seed``, ``first_seed + 1``, ... until ``n`` succeed
+    or ``attempts`` were tried, each said in one line; the successful ones (episode ids 0, 1, ...)
+    and the next seed."""
+    kept: list[Trajectory] = []
+    seed = first_seed
+    while len(kept) < n and seed < first_seed + attempts:
+        traj = policy_episode(adapter, act, seed, post_success_steps)
+        if traj is None:
+            log(f"  seed {seed}: no success in {adapter.horizon} steps, skipped")
+        else:
+            traj.episode_id = len(kept)
+            kept.append(traj)
+            log(f"  seed {seed}: first success flag at t = {int(np.argmax(traj.success))}, "
+                f"T = {traj.length} steps kept")
+        seed += 1
+    return kept, seed
+
+
 def generate_metaworld(task: str, n: int, out: Path, first_seed: int = 0,
                        max_attempts: int | None = None,
                        post_success_steps: int = POST_SUCCESS_STEPS,
@@ -129,19 +150,9 @@ def generate_metaworld(task: str, n: int, out: Path, first_seed: int = 0,
     policy = scripted_policy(task)
     adapter = metaworld.make(task, max_episode_steps=max_episode_steps)
     attempts = max_attempts if max_attempts is not None else 4 * n
-    kept: list[Trajectory] = []
-    seed = first_seed
     try:
-        while len(kept) < n and seed < first_seed + attempts:
-            traj = metaworld_episode(adapter, policy, seed, post_success_steps)
-            if traj is None:
-                log(f"  seed {seed}: no success in {adapter.horizon} steps, skipped")
-            else:
-                traj.episode_id = len(kept)
-                kept.append(traj)
-                log(f"  seed {seed}: first success flag at t = {int(np.argmax(traj.success))}, "
-                    f"T = {traj.length} steps kept")
-            seed += 1
+        kept, seed = successful_episodes(adapter, policy.get_action, n, first_seed, attempts,
+                                         post_success_steps, log)
         if len(kept) < n:
             raise DemoSourceError(
                 f"metaworld: only {len(kept)} of {attempts} scripted episodes of {task} succeeded "
@@ -165,24 +176,12 @@ def generate_metaworld(task: str, n: int, out: Path, first_seed: int = 0,
 
 def load_callable(spec: str) -> Callable[..., Any]:
     """``module:callable`` (after the config's ``env.imports`` are imported)."""
-    import importlib
+    from .adapters.base import entry_point
 
-    module, sep, name = spec.partition(":")
-    if not sep or not module or not name:
-        raise DemoSourceError(f"--policy '{spec}': expected module:callable, e.g. "
-                              "my_package.policies:scripted")
     try:
-        target: Any = importlib.import_module(module)
-    except Exception as e:  # noqa: BLE001 - the user's module, by name
-        raise DemoSourceError(f"--policy '{spec}': importing '{module}' failed "
-                              f"({type(e).__name__}: {e})") from e
-    for part in name.split("."):
-        if not hasattr(target, part):
-            raise DemoSourceError(f"--policy '{spec}': '{module}' has no '{name}'")
-        target = getattr(target, part)
-    if not callable(target):
-        raise DemoSourceError(f"--policy '{spec}': '{name}' is not callable")
-    return target
+        return entry_point("--policy", spec)
+    except AdapterError as e:
+        raise DemoSourceError(str(e)) from e
 
 
 def record(suite: str, env_id: str, options: dict[str, Any], policy: str, n: int, out: Path,
@@ -201,18 +200,8 @@ def record(suite: str, env_id: str, options: dict[str, Any], policy: str, n: int
     try:
         act = load_callable(policy)
         attempts = max_attempts if max_attempts is not None else 4 * n
-        kept: list[Trajectory] = []
-        seed = first_seed
-        while len(kept) < n and seed < first_seed + attempts:
-            traj = policy_episode(adapter, act, seed, post_success_steps)
-            if traj is None:
-                log(f"  seed {seed}: no success in {adapter.horizon} steps, skipped")
-            else:
-                traj.episode_id = len(kept)
-                kept.append(traj)
-                log(f"  seed {seed}: first success flag at t = {int(np.argmax(traj.success))}, "
-                    f"T = {traj.length} steps kept")
-            seed += 1
+        kept, seed = successful_episodes(adapter, act, n, first_seed, attempts,
+                                         post_success_steps, log)
         if len(kept) < n:
             raise DemoSourceError(
                 f"record: only {len(kept)} of {seed - first_seed} episodes of {policy} in "

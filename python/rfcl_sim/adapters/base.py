@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import abc
 import importlib
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -180,3 +180,24 @@ def import_modules(suite: str, modules: Any) -> None:
             raise AdapterError(
                 f"{suite}: env.imports: importing '{module}' failed ({type(e).__name__}: {e})"
             ) from e
+
+
+def entry_point(what: str, spec: str) -> Callable[..., Any]:
+    """``module:callable`` (a dotted name after the colon) as the callable; ``what`` names the
+    option in the errors (``gymnasium``, ``--policy``)."""
+    module, sep, name = spec.partition(":")
+    if not sep or not module or not name:
+        raise AdapterError(f"{what}: '{spec}': expected module:callable, e.g. my_package.envs:make")
+    try:
+        target: Any = importlib.import_module(module)
+    except Exception as e:  # noqa: BLE001 - the user's module, by name
+        raise AdapterError(
+            f"{what}: '{spec}': importing '{module}' failed ({type(e).__name__}: {e})"
+        ) from e
+    for part in name.split("."):
+        if not hasattr(target, part):
+            raise AdapterError(f"{what}: '{spec}': '{module}' has no '{name}'")
+        target = getattr(target, part)
+    if not callable(target):
+        raise AdapterError(f"{what}: '{spec}': '{name}' is not callable")
+    return target

@@ -44,12 +44,11 @@ than :data:`RESTORE_TOLERANCE`); a layout whose lengths do not add up to the sta
 """
 from __future__ import annotations
 
-import importlib
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError, check_render_size, import_modules
+from .base import Adapter, AdapterError, check_render_size, entry_point, import_modules
 from .fields import check_horizon, check_make_kwargs, headless_gl, render_env_kwargs
 
 SUITE = "gymnasium"
@@ -59,24 +58,6 @@ KWARGS = (
 )
 #: Largest difference between a state and the state read back after restoring it.
 RESTORE_TOLERANCE = 1e-5
-
-
-def entry_point(suite: str, spec: str) -> Callable[..., Any]:
-    """``module:callable`` as the callable."""
-    module, _, name = spec.partition(":")
-    try:
-        target: Any = importlib.import_module(module)
-    except Exception as e:  # noqa: BLE001
-        raise AdapterError(
-            f"{suite}: env_id '{spec}': importing '{module}' failed ({type(e).__name__}: {e})"
-        ) from e
-    for part in name.split("."):
-        if not hasattr(target, part):
-            raise AdapterError(f"{suite}: env_id '{spec}': '{module}' has no '{name}'")
-        target = getattr(target, part)
-    if not callable(target):
-        raise AdapterError(f"{suite}: env_id '{spec}': '{name}' is not callable")
-    return target
 
 
 def make(env_id: str, **kwargs: Any) -> "GymnasiumAdapter":
