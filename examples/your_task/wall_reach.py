@@ -95,4 +95,4 @@ def scripted_policy(obs: np.ndarray) -> np.ndarray:
     return np.clip(3.0 * (target - pos) - 1.5 * vel, -1.0, 1.0).astype(np.float32)
 
 
-gym.register(id="WallReach-v0", entry_point=WallReach, max_episode_steps=60)
+gym.register(id="WallReach-v0", entry_point=WallReach, max_episode_steps=100)
