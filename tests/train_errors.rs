@@ -1,7 +1,8 @@
 //! `rfcl train` when something is wrong: a clear error and a non-zero exit, and no child process
 //! left behind. Bad input is refused before any process starts; a service that fails at start-up,
 //! or keeps dying mid-run, stops the run with that service's error; Ctrl-C while the services
-//! start stops them; a SIGINT the parent left ignored stays ignored, and SIGTERM stops the run.
+//! start stops them; a SIGINT the parent left ignored stays ignored, and SIGTERM stops the run; a
+//! second owner of a running run's directory is refused.
 mod train_support;
 
 use std::process::Command;
@@ -234,5 +235,115 @@ fn an_ignored_sigint_stays_ignored_and_sigterm_stops_the_run() {
         left.is_some(),
         "children outlived rfcl: {:?}",
         processes_of(&run_dir)
+    );
+}
+
+/// One owner per run directory: while a run trains, a second `rfcl train --resume` of it (another
+/// terminal) and a learner or curriculum server started by hand on it are each refused at once,
+/// naming the directory and the holder's pid, and the run goes on untouched.
+#[test]
+fn a_second_owner_of_a_running_run_directory_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut training = start_test_run(dir.path(), &[], "rfcl.stderr");
+    let processes = training.processes(Duration::from_secs(120));
+    let run_dir = training.run_dir.clone();
+    let run = run_dir.display().to_string();
+
+    let second = Command::new(env!("CARGO_BIN_EXE_rfcl"))
+        .args(["train", &format!("{run}/config.yml"), "--resume", &run])
+        .output()
+        .unwrap();
+    assert!(!second.status.success());
+    let line = error_line(&second);
+    assert!(
+        line.contains(&format!("{run} is in use by another rfcl"))
+            && line.contains(&format!("pid {}", training.pid())),
+        "{line}"
+    );
+    let pid_of = |name: &str| {
+        processes["children"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["name"] == name)
+            .and_then(|c| c["pid"].as_u64())
+            .unwrap()
+    };
+    let config = format!("{run}/config.yml");
+    for (binary, role, args) in [
+        (
+            rfcl_testkit::binaries::learner(),
+            "learner",
+            vec![
+                "--config",
+                &config,
+                "--curriculum",
+                "http://127.0.0.1:1",
+                "--run-dir",
+                &run,
+            ],
+        ),
+        (
+            rfcl_testkit::binaries::curriculum_server(),
+            "curriculum-server",
+            vec!["--config", &config, "--resume", &run],
+        ),
+    ] {
+        let out = Command::new(&binary)
+            .args(args)
+            .env("RFCL_TOKEN_FILE", run_dir.join("token"))
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success()
+                && text.contains(&format!("{run} is in use by another {role}"))
+                && text.contains(&format!("pid {}", pid_of(role))),
+            "{role}: {text}"
+        );
+    }
+    assert!(training.exited().is_none(), "{}", training.stderr());
+    signal(training.pid(), rustix::process::Signal::TERM);
+    let status = training.wait(Duration::from_secs(120));
+    assert_eq!(status.code(), Some(130), "{}", training.stderr());
+}
+
+/// A run directory on a filesystem with no room (here a 3 MB tmpfs, mounted in a mount namespace
+/// of its own) is refused in one line before any process starts, instead of services dying on
+/// their first checkpoint or log line.
+#[test]
+fn a_run_directory_on_a_full_filesystem_is_refused_before_anything_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let demos = generate_demos(dir.path());
+    let small = dir.path().join("small");
+    std::fs::create_dir(&small).unwrap();
+    let run_dir = small.join("run");
+    let out = Command::new("unshare")
+        .args(["--user", "--map-root-user", "--mount", "sh", "-c"])
+        .arg(r#"mount -t tmpfs -o size=3m tmpfs "$1" && shift && exec "$@""#)
+        .arg("sh")
+        .arg(&small)
+        .arg(env!("CARGO_BIN_EXE_rfcl"))
+        .arg("train")
+        .arg(test_config())
+        .arg(format!("train.dataset_path={}", demos.display()))
+        .arg("--run-dir")
+        .arg(&run_dir)
+        .output()
+        .unwrap();
+    let line = error_line(&out);
+    assert!(
+        !out.status.success()
+            && line.contains(&format!(
+                "MiB free on the filesystem of {}",
+                run_dir.display()
+            ))
+            && line.contains("free space or choose another --run-dir"),
+        "{line}"
+    );
+    assert!(
+        !String::from_utf8_lossy(&out.stderr).contains("starting"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
     );
 }

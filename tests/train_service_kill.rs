@@ -1,7 +1,8 @@
-//! The curriculum server and then the learner SIGKILLed in the middle of a run: `rfcl train`
-//! restarts each on its port from its last snapshot or checkpoint, says so with what was rolled
-//! back, the actors and the other service reconnect by themselves, and the run still reaches its
-//! bar ([`BAR`], as in train_pointmaze.rs). The summary lists both restarts.
+//! The curriculum server SIGKILLed and then the learner hung (SIGSTOP) in the middle of a run:
+//! `rfcl train` kills the silent learner at `service.hang_timeout_s`, restarts each on its port
+//! from its last snapshot or checkpoint, says so with what was rolled back, the actors and the
+//! other service reconnect by themselves, and the run still reaches its bar ([`BAR`], as in
+//! train_pointmaze.rs). The summary lists both restarts with their causes.
 mod train_support;
 
 use std::time::Duration;
@@ -30,6 +31,7 @@ fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
             // Snapshots and checkpoints often enough that each kill rolls back little.
             "service.snapshot_every_s=2".into(),
             "sac.save_every_s=10".into(),
+            "service.hang_timeout_s=10".into(),
         ],
         "rfcl.stderr",
     );
@@ -74,18 +76,19 @@ fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
         (learner_health(&processes)?.env_steps > 15_000).then_some(())
     })
     .unwrap_or_else(|| panic!("the learner made no progress:\n{}", training.stderr()));
-    signal(learner as u32, rustix::process::Signal::KILL);
+    signal(learner as u32, rustix::process::Signal::STOP);
     let (new_learner, processes) = wait_for(Duration::from_secs(120), || {
         replaced(&run_dir, "learner", learner)
     })
-    .unwrap_or_else(|| panic!("the learner was not restarted:\n{}", training.stderr()));
+    .unwrap_or_else(|| panic!("the hung learner was not restarted:\n{}", training.stderr()));
     assert!(alive(new_learner));
+    let stderr = training.stderr();
     assert!(
-        training
-            .stderr()
-            .contains("the learner died (killed by signal 9); restarting it"),
-        "{}",
-        training.stderr()
+        stderr.contains(&format!(
+            "the learner (pid {learner}) has not answered for 1"
+        )) && stderr.contains("killing it to restart it")
+            && stderr.contains("the learner died (killed after not answering for 1"),
+        "{stderr}"
     );
 
     let status = training.wait(Duration::from_secs(900));
@@ -102,8 +105,15 @@ fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
         ["curriculum-server", "learner"],
         "{summary}"
     );
+    assert_eq!(restarts[0]["cause"], "killed by signal 9");
+    assert!(
+        restarts[1]["cause"]
+            .as_str()
+            .unwrap()
+            .starts_with("killed after not answering for 1"),
+        "{summary}"
+    );
     for r in restarts {
-        assert_eq!(r["cause"], "killed by signal 9");
         assert!(r["rolled_back"]["env_steps"].is_u64());
     }
     for pid in child_pids(&processes) {

@@ -4,9 +4,12 @@
 //! * [`config`]: the run configuration (every option of the RFCL spec), YAML resolution with
 //!   `base_config` inheritance, dotted overrides and validation.
 //! * [`demo`]: demonstration datasets in ManiSkill's trajectory format (HDF5 + JSON sidecar).
+//! * [`final_counters`]: the learner's counters when it stops cleanly (`learner_final.json`).
 //! * [`lease`]: reset leases and episode reports (the curriculum contract).
 //! * [`maze`]: the fixed PointMaze layout (spec 7.5), for the native env and the dashboard.
+//! * [`run_lock`]: one owner per run directory and role (a kernel lock held while a process runs).
 //! * [`transition`]: the one fixed binary layout of a transition record, shared by both transports.
+//! * [`video`]: an eval episode's video and the file name that carries what it shows.
 #![forbid(unsafe_code)]
 
 pub mod atomic;
@@ -15,6 +18,7 @@ pub mod demo;
 pub mod final_counters;
 pub mod lease;
 pub mod maze;
+pub mod run_lock;
 pub mod transition;
 pub mod video;
 

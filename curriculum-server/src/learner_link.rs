@@ -73,6 +73,8 @@ impl LearnerLink {
             (None, _) => Some("not polled: the server has no client credentials".into()),
             (Some(_), e) => e.clone(),
         };
+        // A learner that does not answer is not well, whatever it said last.
+        panel.ok &= panel.error.is_none();
         Some(panel)
     }
 
@@ -255,12 +257,14 @@ mod tests {
             }),
             ..Default::default()
         };
-        link.record("http://learner:50052", Ok(reply));
+        link.record("http://learner:50052", Ok(reply.clone()));
+        assert!(link.panel(unix_now()).unwrap().ok);
         link.record("http://learner:50052", Err("Health at …: no answer".into()));
         let now = unix_now() + 3.0;
         let panel = link.panel(now).unwrap();
         assert!(panel.seconds_since_answer.unwrap() >= 3.0);
         assert_eq!(panel.error.as_deref(), Some("Health at …: no answer"));
+        assert!(!panel.ok, "a learner that does not answer is not ok");
         assert_eq!((panel.critic_updates, panel.policy_version), (320, 7));
         let w = panel.window.unwrap();
         assert_eq!(

@@ -89,6 +89,9 @@ async fn run(args: Args) -> Result<()> {
         .unwrap_or_else(|| PathBuf::from("runs").join(&cfg.name));
     std::fs::create_dir_all(&run_dir)
         .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
+    // Held until the process ends: a second curriculum-server on this directory is refused before it
+    // writes anything.
+    let _lock = rfcl_core::run_lock::RunDirLock::acquire(&run_dir, "curriculum-server")?;
     // A server that finds its own snapshot in its run directory continues it (a restarted
     // container, a supervisor's restart): the run goes on without anyone passing --resume.
     let snapshot_path = snapshot::snapshot_path(&run_dir);

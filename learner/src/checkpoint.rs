@@ -17,10 +17,18 @@
 //! into (new rows, or old ones overwritten once the ring wrapped) is written anew. A buffer moved
 //! at the stage transition keeps its files.
 //!
+//! | `learner.prev.json`                   | the previous generation's manifest: the fallback       |
+//!
 //! Commit protocol: the data files of generation `gen` are written under new names and fsynced,
-//! then the manifest is replaced atomically ([`rfcl_core::atomic::atomic_write`]); only then are
-//! the files no manifest names any more deleted. A `kill -9` at any moment leaves the previous
-//! checkpoint or the new one, never a mix.
+//! the current manifest (when whole) is copied to `learner.prev.json`, then the manifest is
+//! replaced atomically ([`rfcl_core::atomic::atomic_write`]); only then are the files neither
+//! manifest names deleted. A `kill -9` at any moment leaves the previous checkpoint or the new one,
+//! never a mix.
+//!
+//! Damage is detected, never trusted: the manifest carries a CRC-32C of its own bytes (`checksum`,
+//! computed with its value zeroed), and names the CRC-32C of every data file. [`read_manifest`]
+//! gives the newest generation that is whole (`learner.json`, or else `learner.prev.json`, with a
+//! warning naming the damage) and refuses when neither is.
 use std::collections::HashSet;
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -36,8 +44,15 @@ use crate::replay::{Replay, ReplayBuffer, SegmentFile};
 use crate::sac::Sac;
 
 /// The manifest's `format`.
-pub const FORMAT: &str = "rfcl-learner-checkpoint-v2";
+pub const FORMAT: &str = "rfcl-learner-checkpoint-v3";
+/// The format before manifests carried checksums: still read (nothing to verify but the replay).
+const FORMAT_V2: &str = "rfcl-learner-checkpoint-v2";
 pub const MANIFEST: &str = "learner.json";
+/// The generation before [`MANIFEST`]'s, kept as the fallback.
+pub const PREVIOUS: &str = "learner.prev.json";
+/// The manifest's own checksum field as written before its value is known (same length as any).
+const CHECKSUM_FIELD: &str = "\"checksum\": \"";
+const CHECKSUM_ZERO: &str = "00000000";
 
 /// Causes are sources, never repeated in the message: `{:#}` (anyhow) and
 /// [`crate::error::chain`] print each once.
@@ -129,8 +144,16 @@ pub struct Manifest {
     pub offline: Option<BufferMeta>,
     pub networks_file: String,
     pub optimizers_file: String,
+    /// CRC-32C of the networks and optimizers files (absent in v2 checkpoints).
+    #[serde(default)]
+    pub networks_crc32c: Option<u32>,
+    #[serde(default)]
+    pub optimizers_crc32c: Option<u32>,
     /// Bytes of all replay segment files this checkpoint names.
     pub replay_bytes: u64,
+    /// CRC-32C of this manifest's bytes with this value written as `00000000`, in hex (v3).
+    #[serde(default)]
+    pub checksum: Option<String>,
 }
 
 impl Manifest {
@@ -167,9 +190,49 @@ pub fn checkpoint_dir(run_dir: &Path) -> PathBuf {
     run_dir.join("checkpoint")
 }
 
-/// The manifest in `dir`, or `None` when there is no checkpoint.
+/// The newest whole checkpoint's manifest in `dir`, or `None` when there is no checkpoint: the
+/// current one, or when it or a data file it names is damaged the previous generation's (a
+/// warning names the damage). Refused when neither is whole.
 pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>> {
-    let path = dir.join(MANIFEST);
+    let current = match read_verified(dir, MANIFEST) {
+        Ok(None) => return Ok(None),
+        Ok(Some(m)) => return Ok(Some(m)),
+        Err(e) => e,
+    };
+    match read_verified(dir, PREVIOUS) {
+        Ok(Some(previous)) => {
+            tracing::warn!(
+                generation = previous.generation,
+                "the checkpoint in {} is damaged ({}): resuming from the generation before it",
+                dir.display(),
+                crate::error::chain(&current)
+            );
+            Ok(Some(previous))
+        }
+        Ok(None) => Err(current),
+        Err(previous) => Err(CheckpointError::Corrupt {
+            path: dir.to_path_buf(),
+            problem: format!(
+                "both generations are damaged: {}; and {}",
+                crate::error::chain(&current),
+                crate::error::chain(&previous)
+            ),
+        }),
+    }
+}
+
+/// The manifest `dir/name` with its own checksum and every data file's CRC-32C checked.
+fn read_verified(dir: &Path, name: &str) -> Result<Option<Manifest>> {
+    let Some(manifest) = read_one(dir, name)? else {
+        return Ok(None);
+    };
+    verify_files(dir, &manifest, true)?;
+    Ok(Some(manifest))
+}
+
+/// The manifest `dir/name` with its own checksum checked (v3), or `None` when the file is absent.
+fn read_one(dir: &Path, name: &str) -> Result<Option<Manifest>> {
+    let path = dir.join(name);
     let text = match std::fs::read_to_string(&path) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
@@ -180,13 +243,122 @@ pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>> {
             path: path.clone(),
             source,
         })?;
-    if manifest.format != FORMAT {
-        return Err(CheckpointError::Format {
-            path,
-            got: manifest.format,
-        });
+    match manifest.format.as_str() {
+        FORMAT => {
+            let written = manifest.checksum.as_deref().unwrap_or_default();
+            let computed = format!("{:08x}", manifest_crc(&text));
+            if written != computed {
+                return Err(CheckpointError::Corrupt {
+                    path,
+                    problem: format!(
+                        "its checksum is {computed}, it says {written:?}: the file was changed \
+                         after it was written"
+                    ),
+                });
+            }
+        }
+        FORMAT_V2 => {}
+        _ => {
+            return Err(CheckpointError::Format {
+                path,
+                got: manifest.format,
+            })
+        }
     }
     Ok(Some(manifest))
+}
+
+/// CRC-32C of a manifest's text with its checksum's value read as `00000000`. (A quote inside a
+/// JSON string is escaped, so the field's pattern occurs only as the field itself.)
+fn manifest_crc(text: &str) -> u32 {
+    match text.rfind(CHECKSUM_FIELD) {
+        Some(at) if text.len() >= at + CHECKSUM_FIELD.len() + CHECKSUM_ZERO.len() => {
+            let value = at + CHECKSUM_FIELD.len();
+            let mut bytes = text.as_bytes().to_vec();
+            bytes[value..value + CHECKSUM_ZERO.len()].copy_from_slice(CHECKSUM_ZERO.as_bytes());
+            crc32c::crc32c(&bytes)
+        }
+        _ => crc32c::crc32c(text.as_bytes()),
+    }
+}
+
+/// The manifest as written: pretty JSON whose `checksum` is the CRC-32C of these bytes with the
+/// value zeroed.
+fn manifest_bytes(manifest: &Manifest) -> Vec<u8> {
+    let mut manifest = manifest.clone();
+    manifest.checksum = Some(CHECKSUM_ZERO.into());
+    let text = serde_json::to_string_pretty(&manifest).expect("a manifest serialises");
+    let crc = format!("{:08x}", manifest_crc(&text));
+    let at = text.rfind(CHECKSUM_FIELD).expect("the checksum field") + CHECKSUM_FIELD.len();
+    let mut bytes = text.into_bytes();
+    bytes[at..at + CHECKSUM_ZERO.len()].copy_from_slice(crc.as_bytes());
+    bytes
+}
+
+/// Every data file `manifest` names is there with its size, and (with `contents`) its CRC-32C.
+fn verify_files(dir: &Path, manifest: &Manifest, contents: bool) -> Result<()> {
+    let tensors = [
+        (&manifest.networks_file, manifest.networks_crc32c),
+        (&manifest.optimizers_file, manifest.optimizers_crc32c),
+    ];
+    for (file, crc) in tensors {
+        let path = dir.join(file);
+        if !path.is_file() {
+            return Err(io(&path)(std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "checkpoint file missing",
+            )));
+        }
+        if let (Some(want), true) = (crc, contents) {
+            check_crc(&path, want)?;
+        }
+    }
+    for segment in std::iter::once(&manifest.online)
+        .chain(manifest.offline.as_ref())
+        .flat_map(|b| &b.segments)
+    {
+        let path = dir.join(&segment.file);
+        if !file_has_size(&path, segment.bytes) {
+            return Err(CheckpointError::Corrupt {
+                path,
+                problem: format!(
+                    "missing, or not the {} bytes the manifest says",
+                    segment.bytes
+                ),
+            });
+        }
+        if contents {
+            check_crc(&path, segment.crc32c)?;
+        }
+    }
+    Ok(())
+}
+
+fn check_crc(path: &Path, want: u32) -> Result<()> {
+    let raw = std::fs::read(path).map_err(io(path))?;
+    let crc = crc32c::crc32c(&raw);
+    if crc != want {
+        return Err(CheckpointError::Corrupt {
+            path: path.to_path_buf(),
+            problem: format!("CRC-32C {crc:#010x}, the manifest says {want:#010x}"),
+        });
+    }
+    Ok(())
+}
+
+/// The highest generation any manifest in `dir` names, damaged or not (a new one never reuses it).
+fn last_generation(dir: &Path) -> u64 {
+    #[derive(Deserialize)]
+    struct Generation {
+        generation: u64,
+    }
+    [MANIFEST, PREVIOUS]
+        .iter()
+        .filter_map(|name| std::fs::read(dir.join(name)).ok())
+        .filter_map(|bytes| serde_json::from_slice::<Generation>(&bytes).ok())
+        .map(|g| g.generation)
+        .max()
+        .unwrap_or(0)
 }
 
 /// Writes a checkpoint of `sac`, `replay` and `extras` into `dir` (see the module docs): the
@@ -194,7 +366,7 @@ pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>> {
 /// buffers remember which file holds each segment once the manifest is committed.
 pub fn save(dir: &Path, sac: &Sac, replay: &mut Replay, extras: &Extras<'_>) -> Result<Saved> {
     std::fs::create_dir_all(dir).map_err(io(dir))?;
-    let generation = read_manifest(dir)?.map_or(1, |m| m.generation + 1);
+    let generation = last_generation(dir) + 1;
     let networks_file = format!("networks.{generation}.safetensors");
     let optimizers_file = format!("optimizers.{generation}.safetensors");
 
@@ -207,8 +379,8 @@ pub fn save(dir: &Path, sac: &Sac, replay: &mut Replay, extras: &Extras<'_>) -> 
             });
         }
     }
-    write_tensors(&dir.join(&networks_file), &networks)?;
-    write_tensors(&dir.join(&optimizers_file), &optimizers)?;
+    let networks_crc32c = write_tensors(&dir.join(&networks_file), &networks)?;
+    let optimizers_crc32c = write_tensors(&dir.join(&optimizers_file), &optimizers)?;
 
     // (buffer, segment, file) of the segments written now: recorded in the buffers only once the
     // manifest naming them is committed.
@@ -263,11 +435,24 @@ pub fn save(dir: &Path, sac: &Sac, replay: &mut Replay, extras: &Extras<'_>) -> 
         offline,
         networks_file,
         optimizers_file,
+        networks_crc32c: Some(networks_crc32c),
+        optimizers_crc32c: Some(optimizers_crc32c),
         replay_bytes,
+        checksum: None,
     };
+    // The current generation becomes the fallback when it is whole (its files' CRCs were checked
+    // when it was written or read; a damaged one never replaces a good fallback).
+    let current = read_one(dir, MANIFEST)
+        .ok()
+        .flatten()
+        .filter(|m| verify_files(dir, m, false).is_ok());
+    if let Some(current) = &current {
+        let path = dir.join(PREVIOUS);
+        rfcl_core::atomic::atomic_write(&path, &manifest_bytes(current)).map_err(io(&path))?;
+    }
+    let previous = read_one(dir, PREVIOUS).ok().flatten();
     let path = dir.join(MANIFEST);
-    let json = serde_json::to_vec_pretty(&manifest).expect("a manifest serialises");
-    rfcl_core::atomic::atomic_write(&path, &json).map_err(io(&path))?;
+    rfcl_core::atomic::atomic_write(&path, &manifest_bytes(&manifest)).map_err(io(&path))?;
 
     let saved = Saved {
         replay_files_written: written.len(),
@@ -285,7 +470,7 @@ pub fn save(dir: &Path, sac: &Sac, replay: &mut Replay, extras: &Extras<'_>) -> 
         };
         buffer.set_saved_segment(k, file);
     }
-    remove_unnamed(dir, &saved.manifest);
+    remove_unnamed(dir, &saved.manifest, previous.as_ref());
     Ok(saved)
 }
 
@@ -408,11 +593,13 @@ fn find<'a>(tensors: &'a [(String, Tensor)], name: &str) -> Result<&'a Tensor> {
         .ok_or_else(|| CheckpointError::Mismatch(format!("the checkpoint lacks tensor {name}")))
 }
 
-fn write_tensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {
+/// Writes and fsyncs `tensors`; returns the file's CRC-32C.
+fn write_tensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<u32> {
     Tensor::write_safetensors(tensors, path)?;
     File::open(path)
         .and_then(|f| f.sync_all())
-        .map_err(io(path))
+        .map_err(io(path))?;
+    Ok(crc32c::crc32c(&std::fs::read(path).map_err(io(path))?))
 }
 
 fn read_tensors(path: &Path) -> Result<Vec<(String, Tensor)>> {
@@ -539,9 +726,13 @@ fn read_buffer(
     Ok(buffer)
 }
 
-/// Deletes the data files the manifest does not name (best effort; each failure logged).
-fn remove_unnamed(dir: &Path, manifest: &Manifest) {
-    let keep: HashSet<&str> = manifest.files().collect();
+/// Deletes the data files neither the manifest nor the fallback names (best effort; each failure
+/// logged).
+fn remove_unnamed(dir: &Path, manifest: &Manifest, previous: Option<&Manifest>) {
+    let keep: HashSet<&str> = manifest
+        .files()
+        .chain(previous.into_iter().flat_map(Manifest::files))
+        .collect();
     let Ok(entries) = std::fs::read_dir(dir) else {
         return;
     };
@@ -641,8 +832,8 @@ mod tests {
             limiter: &limiter,
         };
         save(dir.path(), &sac, &mut replay, &extras).unwrap();
-        // A second save replaces the first generation's network files and keeps the replay
-        // segments nothing was pushed into since.
+        // A second save writes new network files, keeps the first generation's as its fallback,
+        // and keeps the replay segments nothing was pushed into since.
         let saved = save(dir.path(), &sac, &mut replay, &extras).unwrap();
         assert_eq!(saved.manifest.generation, 2);
         assert_eq!(
@@ -658,7 +849,10 @@ mod tests {
             names,
             [
                 "learner.json",
+                "learner.prev.json",
+                "networks.1.safetensors",
                 "networks.2.safetensors",
+                "optimizers.1.safetensors",
                 "optimizers.2.safetensors",
                 "replay.1.offline.0.bin",
                 "replay.1.online.0.bin",
@@ -794,6 +988,8 @@ mod tests {
                 "replay.1.online.0.bin",
                 "replay.1.online.1.bin",
                 "replay.1.online.2.bin",
+                // The fallback (generation 1) still names its own segment 3.
+                "replay.1.online.3.bin",
                 "replay.2.online.3.bin",
             ]
         );
@@ -851,6 +1047,9 @@ mod tests {
         assert_eq!(
             replay_files(dir.path()),
             [
+                // Generation 1's segments 0 and 1 stay for the fallback.
+                "replay.1.online.0.bin",
+                "replay.1.online.1.bin",
                 "replay.1.online.2.bin",
                 "replay.2.online.0.bin",
                 "replay.2.online.1.bin"
@@ -872,17 +1071,124 @@ mod tests {
         .unwrap();
         assert_eq!(again.replay_files_written, 0);
 
-        // A damaged segment is refused, naming the file.
+        // A damaged segment is refused, naming the file: by restore, and by read_manifest, since
+        // the fallback generation names the same segment.
+        let manifest = read_manifest(dir.path()).unwrap().unwrap();
         let path = dir.path().join("replay.2.online.1.bin");
         let mut raw = std::fs::read(&path).unwrap();
         raw[5] ^= 0x40;
         std::fs::write(&path, raw).unwrap();
-        let manifest = read_manifest(dir.path()).unwrap().unwrap();
         let err = restore(dir.path(), &manifest, &mut fresh).unwrap_err();
         assert!(
             matches!(&err, CheckpointError::Corrupt { path: p, problem } if p == &path && problem.contains("CRC-32C")),
             "{err}"
         );
+        let err = read_manifest(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("both generations are damaged") && err.contains("replay.2.online.1.bin"),
+            "{err}"
+        );
+    }
+
+    /// Two generations, the second with other counters; `damage` breaks something of the second.
+    fn two_generations(
+        damage: impl FnOnce(&Path),
+    ) -> (tempfile::TempDir, Result<Option<Manifest>>) {
+        let (cfg, net) = small();
+        let sac = Sac::new(3, 2, &cfg, &net, 5).unwrap();
+        let mut replay = filled_replay(1);
+        let limiter = UtdLimiter::new(UtdMode::Sync, 4, 2, 0);
+        let dir = tempfile::tempdir().unwrap();
+        for env_steps in [28_368, 30_112] {
+            let progress = Progress {
+                env_steps,
+                ..Progress::default()
+            };
+            save(
+                dir.path(),
+                &sac,
+                &mut replay,
+                &extras_for(&progress, &limiter),
+            )
+            .unwrap();
+        }
+        damage(dir.path());
+        let read = read_manifest(dir.path());
+        (dir, read)
+    }
+
+    #[test]
+    fn an_undamaged_checkpoint_reads_as_its_newest_generation() {
+        let (_dir, read) = two_generations(|_| {});
+        let m = read.unwrap().unwrap();
+        assert_eq!((m.generation, m.progress.env_steps), (2, 30_112));
+    }
+
+    #[test]
+    fn a_flipped_bit_in_the_manifest_falls_back_to_the_generation_before() {
+        // One bit: '3' (0x33) -> '7' (0x37) in progress.env_steps, as a flaky disk did.
+        let (dir, read) = two_generations(|dir| {
+            let path = dir.join(MANIFEST);
+            let text = std::fs::read_to_string(&path).unwrap();
+            let flipped = text.replace("\"env_steps\": 30112", "\"env_steps\": 70112");
+            assert_ne!(text, flipped);
+            std::fs::write(&path, flipped).unwrap();
+        });
+        let m = read.unwrap().unwrap();
+        assert_eq!((m.generation, m.progress.env_steps), (1, 28_368));
+        // Its files are all there: it restores.
+        let (cfg, net) = small();
+        let mut fresh = Sac::new(3, 2, &cfg, &net, 99).unwrap();
+        restore(dir.path(), &m, &mut fresh).unwrap();
+        // The next checkpoint is generation 3 and keeps the whole one (1) as its fallback.
+        let mut replay = filled_replay(1);
+        let progress = Progress::default();
+        let limiter = UtdLimiter::new(UtdMode::Sync, 4, 2, 0);
+        let saved = save(
+            dir.path(),
+            &fresh,
+            &mut replay,
+            &extras_for(&progress, &limiter),
+        )
+        .unwrap();
+        assert_eq!(saved.manifest.generation, 3);
+        let previous = read_one(dir.path(), PREVIOUS).unwrap().unwrap();
+        assert_eq!(previous.generation, 1);
+    }
+
+    #[test]
+    fn a_damaged_network_file_falls_back_and_two_damaged_generations_are_refused() {
+        let flip = |path: &Path| {
+            let mut raw = std::fs::read(path).unwrap();
+            let last = raw.len() - 1;
+            raw[last] ^= 0x01;
+            std::fs::write(path, raw).unwrap();
+        };
+        let (dir, read) = two_generations(|dir| flip(&dir.join("networks.2.safetensors")));
+        assert_eq!(read.unwrap().unwrap().generation, 1);
+        flip(&dir.path().join("optimizers.1.safetensors"));
+        let err = read_manifest(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("both generations are damaged")
+                && err.contains("networks.2.safetensors")
+                && err.contains("optimizers.1.safetensors"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_checkpoint_of_the_format_before_checksums_still_reads() {
+        let (dir, _) = two_generations(|_| {});
+        let mut m = read_one(dir.path(), MANIFEST).unwrap().unwrap();
+        m.format = FORMAT_V2.into();
+        (m.checksum, m.networks_crc32c, m.optimizers_crc32c) = (None, None, None);
+        let mut v = serde_json::to_value(&m).unwrap();
+        for field in ["checksum", "networks_crc32c", "optimizers_crc32c"] {
+            v.as_object_mut().unwrap().remove(field);
+        }
+        std::fs::write(dir.path().join(MANIFEST), v.to_string()).unwrap();
+        let read = read_manifest(dir.path()).unwrap().unwrap();
+        assert_eq!((read.generation, read.format.as_str()), (2, FORMAT_V2));
     }
 
     #[test]

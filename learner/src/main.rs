@@ -149,6 +149,9 @@ async fn run(args: Args) -> Result<()> {
     let demos = load_demos(&args, &cfg)?;
     std::fs::create_dir_all(&run_dir)
         .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
+    // Held until the process ends: a second learner on this directory is refused before it
+    // writes anything.
+    let _lock = rfcl_core::run_lock::RunDirLock::acquire(&run_dir, "learner")?;
     let ckpt_dir = checkpoint::checkpoint_dir(&run_dir);
     let mut member_threads = 1;
     if cfg.sac.device == Device::Cpu {

@@ -40,9 +40,10 @@ fn snapshot(run_dir: &Path) -> (Snapshot, Manifest) {
         tensors.sort_by(|a, b| a.0.cmp(&b.0));
         tensors
     };
-    // Everything but the file names, the generation and the wall-clock time.
+    // Everything but the file names, the generation, the wall-clock time and the manifest's
+    // checksum (which covers those).
     let mut json = serde_json::to_value(&manifest).unwrap();
-    for key in ["generation", "networks_file", "optimizers_file"] {
+    for key in ["generation", "networks_file", "optimizers_file", "checksum"] {
         json.as_object_mut().unwrap().remove(key);
     }
     json["progress"].as_object_mut().unwrap().remove("wall_ms");

@@ -23,6 +23,24 @@ use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 /// Lines of a child's log shown with its failure.
 const LOG_TAIL_LINES: usize = 15;
 
+/// Below this much free space a service that died is not restarted: its checkpoint, snapshot and
+/// log would not fit, and it would die again for the same reason.
+pub const MIN_FREE_BYTES: u64 = 32 << 20;
+
+/// "only N MiB free on the filesystem of DIR" when `dir`'s filesystem has less than
+/// [`MIN_FREE_BYTES`] available; `None` when it has enough or cannot be asked.
+pub fn short_of_space(dir: &Path) -> Option<String> {
+    let st = rustix::fs::statvfs(dir).ok()?;
+    let free = st.f_bavail.saturating_mul(st.f_frsize);
+    (free < MIN_FREE_BYTES).then(|| {
+        format!(
+            "only {:.1} MiB free on the filesystem of {}",
+            free as f64 / f64::from(1 << 20),
+            dir.display()
+        )
+    })
+}
+
 /// `setpriv` when it is on the PATH (util-linux; Essential on Debian).
 pub fn find_setpriv() -> Option<PathBuf> {
     let path = std::env::var_os("PATH")?;

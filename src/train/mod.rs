@@ -34,6 +34,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
 use rfcl_core::final_counters::{FinalCounters, LearnerCounts, FINAL_COUNTERS_FILE};
+use rfcl_core::run_lock::RunDirLock;
 use rfcl_curriculum::dashboard::DashboardView;
 use rfcl_proto::auth::{self, AuthChannel, ClientAuth, Token};
 use rfcl_proto::v1;
@@ -46,7 +47,7 @@ use children::{describe, find_setpriv, Child, Launcher};
 use progress::{
     ready_field, restart_delay_s, split_envs, summarize, CompleteEval, CountersSource, Ending,
     EvalTracker, LearnerCounters, RespawnLimiter, RolledBack, RunProgress, RunShape,
-    ServiceRestart, Summary,
+    ServiceRestart, Silence, SilenceAction, Summary,
 };
 
 /// How long a service may take to print its ready line (the learner loads demos and may restore
@@ -62,6 +63,8 @@ const LEARNER_GRACE: Duration = Duration::from_secs(120);
 const SERVER_GRACE: Duration = Duration::from_secs(20);
 /// How long the end of a run waits for the next episode of the final policy's evaluation.
 const FINAL_EVAL_PATIENCE: Duration = Duration::from_secs(60);
+/// A service silent this long is said to be so (it is killed at `service.hang_timeout_s`).
+const SILENCE_WARN_S: f64 = 15.0;
 /// A service that dies more often than this within the window cannot run: the run stops.
 pub const SERVICE_RESTARTS_MAX: usize = 3;
 pub const SERVICE_RESTART_WINDOW_S: f64 = 600.0;
@@ -97,6 +100,8 @@ struct Prepared {
     demos: PathBuf,
     resume: bool,
     progress: RunProgress,
+    /// This launcher owns the run directory until it ends (a second `rfcl train` on it is refused).
+    _lock: RunDirLock,
 }
 
 fn prepare(args: &TrainArgs) -> Result<Prepared> {
@@ -128,17 +133,7 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
         }
         None => {
             let run_dir = match &args.run_dir {
-                Some(dir) => {
-                    if dir.join("config.yml").exists() {
-                        bail!(
-                            "{} already holds a run: continue it with --resume {} or choose \
-                             another --run-dir",
-                            dir.display(),
-                            dir.display()
-                        );
-                    }
-                    dir.clone()
-                }
+                Some(dir) => dir.clone(),
                 None => free_run_dir(&PathBuf::from("runs"), &requested.name),
             };
             (requested, run_dir, false)
@@ -157,6 +152,21 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
     let demos = PathBuf::from(cfg.train.dataset_path.clone().expect("checked"));
     std::fs::create_dir_all(run_dir.join("logs"))
         .with_context(|| format!("creating the run directory {}", run_dir.display()))?;
+    // Before anything is written: a second launcher on this directory stops here.
+    let lock = RunDirLock::acquire(&run_dir, "rfcl")?;
+    if let Some(short) = children::short_of_space(&run_dir) {
+        bail!(
+            "{short}: a run writes its checkpoints (the replay buffer with them), snapshots and logs \
+             there; free space or choose another --run-dir"
+        );
+    }
+    if !resume && run_dir.join("config.yml").exists() {
+        bail!(
+            "{} already holds a run: continue it with --resume {} or choose another --run-dir",
+            run_dir.display(),
+            run_dir.display()
+        );
+    }
     let config_path = run_dir.join("config.yml");
     rfcl_core::atomic::atomic_write(&config_path, to_yaml(&cfg).as_bytes())
         .with_context(|| format!("writing {}", config_path.display()))?;
@@ -176,6 +186,7 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
         demos,
         resume,
         progress,
+        _lock: lock,
     })
 }
 
@@ -324,6 +335,11 @@ struct Session {
     last_health: Option<(Instant, u64)>,
     /// The pid of a learner that ended the run by exiting by itself.
     learner_exited: Option<u32>,
+    /// How long each service has not answered, and the one killed for it (the cause of its
+    /// restart).
+    server_silence: Silence,
+    learner_silence: Silence,
+    killed_silent: Option<(Service, f64)>,
 }
 
 async fn train_async(args: TrainArgs) -> Result<Summary> {
@@ -541,6 +557,9 @@ impl Session {
             updates_per_s: 0.0,
             last_health: None,
             learner_exited: None,
+            server_silence: Silence::default(),
+            learner_silence: Silence::default(),
+            killed_silent: None,
             prep,
         };
         for i in 0..session.actors.len() {
@@ -634,9 +653,11 @@ impl Session {
                 }
             }
             self.check_actors()?;
-            self.poll_health().await;
+            let answered = self.poll_health().await;
+            self.watch(Service::Learner, answered);
             if ticks % STATE_EVERY == 1 {
-                self.poll_state().await;
+                let answered = self.poll_state().await;
+                self.watch(Service::Curriculum, answered);
                 if self
                     .evals
                     .reached(self.prep.cfg.service.stop_at_eval_success)
@@ -669,7 +690,15 @@ impl Session {
     ) -> Result<Option<Ending>> {
         let name = service.name();
         let died_at = self.wall_s();
-        let first_cause = describe(Some(status));
+        let first_cause = match self.killed_silent.take() {
+            Some((killed, s)) if killed == service => {
+                format!("killed after not answering for {s:.0} s")
+            }
+            other => {
+                self.killed_silent = other;
+                describe(Some(status))
+            }
+        };
         let mut cause = first_cause.clone();
         let mut tail = match service {
             Service::Curriculum => self.server.log_tail(),
@@ -679,6 +708,15 @@ impl Session {
                 .map(Child::log_tail)
                 .unwrap_or_default(),
         };
+        // A full disk kills every restart the same way: say so instead of retrying.
+        if let Some(short) = children::short_of_space(&self.prep.run_dir) {
+            bail!(
+                "the {name} died ({cause}) with {short}: its checkpoints and logs cannot be \
+                 written there. Free space, then continue with `rfcl train {} --resume {}`{tail}",
+                self.prep.config_path.display(),
+                self.prep.run_dir.display()
+            );
+        }
         let before = self.rollback_counters();
         let (child, line) = loop {
             let now = self.wall_s();
@@ -961,13 +999,49 @@ impl Session {
         serde_json::from_str(&reply.into_inner().json).ok()
     }
 
-    async fn poll_state(&mut self) {
+    /// True when the curriculum server answered.
+    async fn poll_state(&mut self) -> bool {
         let Some(view) = self.fetch_state().await else {
-            return;
+            return false;
         };
         if self.take_view(view) {
             if let Err(e) = self.save_progress(false) {
                 self.bar.println(format!("warning: {e:#}"));
+            }
+        }
+        true
+    }
+
+    /// Keeps count of a service's unanswered calls: says so once it has been silent a while, and
+    /// kills it at `service.hang_timeout_s`, so that the supervisor restarts it as a dead one.
+    fn watch(&mut self, service: Service, answered: bool) {
+        let now = self.wall_s();
+        let timeout = self.prep.cfg.service.hang_timeout_s;
+        let (silence, child) = match service {
+            Service::Curriculum => (&mut self.server_silence, Some(&self.server)),
+            Service::Learner => (&mut self.learner_silence, self.learner.as_ref()),
+        };
+        let Some(child) = child else { return };
+        if answered {
+            silence.answered();
+            return;
+        }
+        let (name, pid) = (service.name(), child.pid);
+        match silence.silent(now, SILENCE_WARN_S, timeout) {
+            SilenceAction::Wait => {}
+            SilenceAction::Warn(s) => self.bar.println(match timeout {
+                Some(t) => format!(
+                    "the {name} (pid {pid}) has not answered for {s:.0} s; it is restarted if it \
+                     stays silent for {t:.0} s (service.hang_timeout_s)"
+                ),
+                None => format!("the {name} (pid {pid}) has not answered for {s:.0} s"),
+            }),
+            SilenceAction::Kill(s) => {
+                self.bar.println(format!(
+                    "the {name} (pid {pid}) has not answered for {s:.0} s: killing it to restart it"
+                ));
+                child.signal(rustix::process::Signal::KILL);
+                self.killed_silent = Some((service, s));
             }
         }
     }

@@ -584,6 +584,48 @@ impl RespawnLimiter {
     }
 }
 
+/// A service whose process lives but does not answer: said once after `warn_after_s`, killed
+/// (to be restarted) after `kill_after_s`. Any answer resets it.
+#[derive(Debug, Clone, Default)]
+pub struct Silence {
+    since: Option<f64>,
+    warned: bool,
+}
+
+/// What [`Silence::silent`] asks the supervisor to do; each carries the seconds of silence.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SilenceAction {
+    Wait,
+    Warn(f64),
+    Kill(f64),
+}
+
+impl Silence {
+    pub fn answered(&mut self) {
+        *self = Self::default();
+    }
+
+    /// A call at `now` went unanswered.
+    pub fn silent(
+        &mut self,
+        now: f64,
+        warn_after_s: f64,
+        kill_after_s: Option<f64>,
+    ) -> SilenceAction {
+        let since = *self.since.get_or_insert(now);
+        let silent_s = now - since;
+        if kill_after_s.is_some_and(|kill| silent_s >= kill) {
+            *self = Self::default();
+            SilenceAction::Kill(silent_s)
+        } else if silent_s >= warn_after_s && !self.warned {
+            self.warned = true;
+            SilenceAction::Warn(silent_s)
+        } else {
+            SilenceAction::Wait
+        }
+    }
+}
+
 /// The address in a service's ready line: `<name> ready grpc=ADDR dashboard=URL`.
 pub fn ready_field(line: &str, key: &str) -> Option<String> {
     line.split_whitespace()
@@ -594,6 +636,25 @@ pub fn ready_field(line: &str, key: &str) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn silence_warns_once_then_kills_and_an_answer_resets_it() {
+        let mut s = Silence::default();
+        assert_eq!(s.silent(100.0, 15.0, Some(60.0)), SilenceAction::Wait);
+        assert_eq!(s.silent(110.0, 15.0, Some(60.0)), SilenceAction::Wait);
+        assert_eq!(s.silent(116.0, 15.0, Some(60.0)), SilenceAction::Warn(16.0));
+        assert_eq!(s.silent(130.0, 15.0, Some(60.0)), SilenceAction::Wait);
+        // An answer starts the count again.
+        s.answered();
+        assert_eq!(s.silent(140.0, 15.0, Some(60.0)), SilenceAction::Wait);
+        assert_eq!(s.silent(156.0, 15.0, Some(60.0)), SilenceAction::Warn(16.0));
+        assert_eq!(s.silent(200.0, 15.0, Some(60.0)), SilenceAction::Kill(60.0));
+        // After a kill the restarted service starts with a clean slate; without a timeout it is
+        // only ever warned about.
+        assert_eq!(s.silent(201.0, 15.0, None), SilenceAction::Wait);
+        assert_eq!(s.silent(1_000.0, 15.0, None), SilenceAction::Warn(799.0));
+        assert_eq!(s.silent(9_000.0, 15.0, None), SilenceAction::Wait);
+    }
 
     fn point(version: u64, env_steps: u64, episodes: u64, success: f64) -> EvalPoint {
         EvalPoint {

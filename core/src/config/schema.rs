@@ -407,6 +407,9 @@ pub struct ServiceConfig {
     /// Stop training when the running mean of the last 5 evals reaches this success rate
     /// (`None` = use the whole budget).
     pub stop_at_eval_success: Option<f64>,
+    /// `rfcl train` kills and restarts a curriculum server or learner whose process lives but
+    /// has not answered for this many seconds (hung, or stopped); `None` = never.
+    pub hang_timeout_s: Option<f64>,
 }
 
 /// The learner process's own options (not the SAC maths: those are `sac`).
@@ -682,6 +685,7 @@ impl Default for ServiceConfig {
             learner_port: 0,
             dashboard_port: 0,
             stop_at_eval_success: None,
+            hang_timeout_s: Some(60.0),
         }
     }
 }

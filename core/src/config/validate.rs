@@ -314,6 +314,13 @@ impl RunConfig {
                 ));
             }
         }
+        if let Some(hang) = service.hang_timeout_s {
+            within(
+                "service.hang_timeout_s",
+                hang,
+                Interval(Included(5.0), Included(86_400.0)),
+            )?;
+        }
         if let Some(success) = service.stop_at_eval_success {
             within(
                 "service.stop_at_eval_success",

@@ -94,7 +94,8 @@ pub struct LearnerPanel {
     pub seconds_since_answer: Option<f64>,
     /// Why the last poll failed, when it did.
     pub error: Option<String>,
-    /// The learner's own health flag: false once its training thread failed.
+    /// False once the learner's training thread failed (its own flag), or while its last poll
+    /// went unanswered.
     pub ok: bool,
     pub env_steps: u64,
     pub critic_updates: u64,
