@@ -173,25 +173,31 @@ fn a_demo_file_that_crashes_the_hdf5_library_is_one_clear_error_line() {
     assert!(!dir.path().join("run").join("processes.json").exists());
 }
 
-#[test]
-fn generated_pointmaze_demos_inspect_cleanly() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("pm.h5");
+/// `rfcl demos generate --env pointmaze -n N --out OUT`, which must succeed.
+fn generate_pointmaze(n: u32, out: &Path) {
+    let n = n.to_string();
     let out = rfcl(&[
         "demos",
         "generate",
         "--env",
         "pointmaze",
         "-n",
-        "3",
+        &n,
         "--out",
-        file.to_str().unwrap(),
+        out.to_str().unwrap(),
     ]);
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+#[test]
+fn generated_pointmaze_demos_inspect_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("pm.h5");
+    generate_pointmaze(3, &file);
     let out = rfcl(&["demos", "inspect", file.to_str().unwrap()]);
     assert!(out.status.success());
     let text = String::from_utf8_lossy(&out.stdout);
@@ -217,21 +223,7 @@ fn generated_pointmaze_demos_inspect_cleanly() {
 fn a_bad_demo_state_is_refused_when_the_file_is_read() {
     let dir = tempfile::tempdir().unwrap();
     let good = dir.path().join("pm.h5");
-    let out = rfcl(&[
-        "demos",
-        "generate",
-        "--env",
-        "pointmaze",
-        "-n",
-        "2",
-        "--out",
-        good.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    generate_pointmaze(2, &good);
     let out = rfcl(&["demos", "inspect", good.to_str().unwrap()]);
     assert!(out.status.success());
     assert!(String::from_utf8_lossy(&out.stdout)

@@ -39,7 +39,6 @@ pub enum RunLockError {
 #[derive(Debug)]
 pub struct RunDirLock {
     _file: File,
-    path: PathBuf,
 }
 
 impl RunDirLock {
@@ -79,11 +78,7 @@ impl RunDirLock {
         file.set_len(0).map_err(io)?;
         file.seek(SeekFrom::Start(0)).map_err(io)?;
         writeln!(file, "{}", std::process::id()).map_err(io)?;
-        Ok(Self { _file: file, path })
-    }
-
-    pub fn path(&self) -> &Path {
-        &self.path
+        Ok(Self { _file: file })
     }
 }
 

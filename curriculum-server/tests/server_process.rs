@@ -56,6 +56,21 @@ fn synthetic_outcome(
     }
 }
 
+/// Reports `lease`'s episode; whether the server applied it (a repeat is acknowledged, not applied).
+async fn applied(
+    client: &mut v1::curriculum_client::CurriculumClient<rfcl_proto::auth::AuthChannel>,
+    lease: &v1::ResetLease,
+    success: bool,
+    ret: f64,
+) -> bool {
+    client
+        .report(report_for(lease, success, ret))
+        .await
+        .unwrap()
+        .into_inner()
+        .applied
+}
+
 async fn state_view(
     client: &mut v1::curriculum_client::CurriculumClient<rfcl_proto::auth::AuthChannel>,
 ) -> DashboardView {
@@ -128,12 +143,7 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
             );
         }
         let (success, ret) = synthetic_outcome(&mut rng, &lease, 21);
-        let ack = client
-            .report(report_for(&lease, success, ret))
-            .await
-            .unwrap()
-            .into_inner();
-        assert!(ack.applied);
+        assert!(applied(&mut client, &lease, success, ret).await);
     }
     let before_kill = state_view(&mut client).await;
     assert_eq!(before_kill.stage, 2);
@@ -250,24 +260,10 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     );
 
     // The real report applies once; its repeat is acknowledged and changes nothing.
-    assert!(
-        client
-            .report(report_for(&lease, true, 1.0))
-            .await
-            .unwrap()
-            .into_inner()
-            .applied
-    );
+    assert!(applied(&mut client, &lease, true, 1.0).await);
     let after_one = curriculum_part(&state_view(&mut client).await);
     assert_ne!(after_one, before);
-    assert!(
-        !client
-            .report(report_for(&lease, true, 1.0))
-            .await
-            .unwrap()
-            .into_inner()
-            .applied
-    );
+    assert!(!applied(&mut client, &lease, true, 1.0).await);
     assert_eq!(curriculum_part(&state_view(&mut client).await), after_one);
 
     // ReportAndAcquire: the report applies once and the next lease comes back in the same reply.
@@ -448,12 +444,7 @@ async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
     .unwrap();
     assert!(serving);
     // The reported lease is still the holder's to report.
-    let ack = client
-        .report(report_for(&lease, true, 1.0))
-        .await
-        .unwrap()
-        .into_inner();
-    assert!(ack.applied);
+    assert!(applied(&mut client, &lease, true, 1.0).await);
 }
 
 #[test]
@@ -720,12 +711,7 @@ async fn reports_beyond_their_lease_are_refused_counted_and_leave_it_open() {
         assert!(metrics.contains(line), "{line} missing from {metrics}");
     }
     // Its holder's report still applies, with the steps it claims.
-    let ack = client
-        .report(report_for(&lease, true, 1.0))
-        .await
-        .unwrap()
-        .into_inner();
-    assert!(ack.applied);
+    assert!(applied(&mut client, &lease, true, 1.0).await);
     assert_eq!(
         state_view(&mut client).await.env_steps,
         u64::from(lease.time_limit.min(20))
@@ -790,14 +776,7 @@ async fn an_oversized_request_is_refused_and_the_server_keeps_serving() {
     // And the server goes on serving.
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
-    assert!(
-        client
-            .report(report_for(&lease, true, 1.0))
-            .await
-            .unwrap()
-            .into_inner()
-            .applied
-    );
+    assert!(applied(&mut client, &lease, true, 1.0).await);
     let view = state_view(&mut client).await;
     assert_eq!(view.episodes, 1);
     // Refused before any handler ran, and still counted and shown.
@@ -858,12 +837,7 @@ async fn a_stage_1_only_run_resumed_without_it_goes_on_into_stage_2() {
     assert_eq!(view.env_steps, ended.env_steps);
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
     assert_eq!((lease.kind, lease.stage), (v1::LeaseKind::Level as i32, 2));
-    let ack = client
-        .report(report_for(&lease, true, 2.0))
-        .await
-        .unwrap()
-        .into_inner();
-    assert!(ack.applied);
+    assert!(applied(&mut client, &lease, true, 2.0).await);
 }
 
 /// Stops a run in stage 1, resumes it with `change` and asserts that the server refuses, naming
@@ -941,14 +915,7 @@ async fn a_flood_of_idle_dashboard_connections_cannot_starve_training() {
         .expect("Acquire answered within 10 s")
         .unwrap()
         .into_inner();
-    assert!(
-        client
-            .report(report_for(&lease, true, 1.0))
-            .await
-            .unwrap()
-            .into_inner()
-            .applied
-    );
+    assert!(applied(&mut client, &lease, true, 1.0).await);
     // The dashboard kept its bound and closed the others, counting each.
     let view = state_view(&mut client).await;
     let refused = view.dashboard_refused as usize;

@@ -159,12 +159,16 @@ pub struct Manifest {
 impl Manifest {
     /// Every data file this checkpoint needs.
     pub fn files(&self) -> impl Iterator<Item = &str> {
-        let segments = std::iter::once(&self.online)
-            .chain(self.offline.as_ref())
-            .flat_map(|b| b.segments.iter().map(|s| s.file.as_str()));
         [self.networks_file.as_str(), self.optimizers_file.as_str()]
             .into_iter()
-            .chain(segments)
+            .chain(self.segments().map(|s| s.file.as_str()))
+    }
+
+    /// Every replay segment file this checkpoint names, online buffer first.
+    pub fn segments(&self) -> impl Iterator<Item = &SegmentFile> {
+        std::iter::once(&self.online)
+            .chain(self.offline.as_ref())
+            .flat_map(|b| &b.segments)
     }
 }
 
@@ -313,10 +317,7 @@ fn verify_files(dir: &Path, manifest: &Manifest, contents: bool) -> Result<()> {
             check_crc(&path, want)?;
         }
     }
-    for segment in std::iter::once(&manifest.online)
-        .chain(manifest.offline.as_ref())
-        .flat_map(|b| &b.segments)
-    {
+    for segment in manifest.segments() {
         let path = dir.join(&segment.file);
         if !file_has_size(&path, segment.bytes) {
             return Err(CheckpointError::Corrupt {
@@ -446,11 +447,14 @@ pub fn save(dir: &Path, sac: &Sac, replay: &mut Replay, extras: &Extras<'_>) -> 
         .ok()
         .flatten()
         .filter(|m| verify_files(dir, m, false).is_ok());
-    if let Some(current) = &current {
-        let path = dir.join(PREVIOUS);
-        rfcl_core::atomic::atomic_write(&path, &manifest_bytes(current)).map_err(io(&path))?;
-    }
-    let previous = read_one(dir, PREVIOUS).ok().flatten();
+    let previous = match current {
+        Some(current) => {
+            let path = dir.join(PREVIOUS);
+            rfcl_core::atomic::atomic_write(&path, &manifest_bytes(&current)).map_err(io(&path))?;
+            Some(current)
+        }
+        None => read_one(dir, PREVIOUS).ok().flatten(),
+    };
     let path = dir.join(MANIFEST);
     rfcl_core::atomic::atomic_write(&path, &manifest_bytes(&manifest)).map_err(io(&path))?;
 

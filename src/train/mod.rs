@@ -690,14 +690,9 @@ impl Session {
     ) -> Result<Option<Ending>> {
         let name = service.name();
         let died_at = self.wall_s();
-        let first_cause = match self.killed_silent.take() {
-            Some((killed, s)) if killed == service => {
-                format!("killed after not answering for {s:.0} s")
-            }
-            other => {
-                self.killed_silent = other;
-                describe(Some(status))
-            }
+        let first_cause = match self.killed_silent.take_if(|(killed, _)| *killed == service) {
+            Some((_, s)) => format!("killed after not answering for {s:.0} s"),
+            None => describe(Some(status)),
         };
         let mut cause = first_cause.clone();
         let mut tail = match service {
