@@ -6,7 +6,9 @@
 //!   (`rfcl_sim.load_policy`), whose successes on the same held-out seeds are `rfcl eval`'s;
 //! * FetchReach-v4 from Gymnasium-Robotics with no code of ours (rfcl's own MuJoCo state), 20,000
 //!   env steps (under a minute) in which most demos' frontiers leave their last state;
-//! * demos that do not fit the env are refused before any process starts.
+//! * demos that do not fit the env are refused before any process starts;
+//! * a demo state the env refuses is reported by the actor as a failed lease, counted against
+//!   its demo, and the run goes on.
 //!
 //! The env's module is found through `PYTHONPATH`, as the tutorial says.
 mod train_support;
@@ -189,6 +191,74 @@ fn a_stock_mujoco_env_trains_with_no_user_code() {
         "{moved} of 5 frontiers left the end: {demos:#?}"
     );
     assert!(summary["env_steps"].as_u64().unwrap() >= 20000);
+}
+
+#[test]
+fn a_demo_state_the_env_refuses_is_counted_against_its_demo_and_the_run_goes_on() {
+    require_services();
+    let dir = tempfile::tempdir().unwrap();
+    let config = example("wall_reach.yml");
+    let demos = dir.path().join("wall_reach.h5");
+    record(&config, "wall_reach:scripted_policy", &demos);
+    // One demo's last 8 states put the point outside the arena: finite numbers, so the file
+    // loads, but WallReach's rfcl_set_state refuses them, and stage 1 starts there.
+    let python = Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python");
+    let script = format!(
+        "import h5py\n\
+         with h5py.File({file:?}, 'r+') as f:\n\
+         \x20   name = sorted(k for k in f if k.startswith('traj_'))[2]\n\
+         \x20   pos = f[name + '/env_states/pos']\n\
+         \x20   pos[-8:, 0] = 3.0\n\
+         \x20   print(name.split('_')[1])\n",
+        file = demos.display().to_string(),
+    );
+    let out = Command::new(&python)
+        .args(["-c", &script])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let bad: u64 = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap();
+    let run_dir = dir.path().join("run");
+    let mut training = train(
+        vec![
+            config.display().to_string(),
+            format!("train.dataset_path={}", demos.display()),
+            "train.steps=6000".into(),
+            "service.stop_at_eval_success=null".into(),
+            "--run-dir".into(),
+            run_dir.display().to_string(),
+        ],
+        &run_dir,
+        &dir.path().join("rfcl.stderr"),
+    );
+    let status = training.wait(Duration::from_secs(600));
+    assert!(status.success(), "{}", training.stderr());
+    let summary = training.summary();
+    assert_eq!(summary["ending"], "budget", "{summary:#}");
+    assert_eq!(summary["actor_respawns"], 0, "no actor died: {summary:#}");
+    let failed = summary["failed_resets"].as_u64().unwrap();
+    assert!(failed >= 1, "{summary:#}");
+    for demo in summary["demos"].as_array().unwrap() {
+        let d = &demo["difficulty"];
+        if demo["episode_id"] == bad {
+            assert_eq!(d["failed_resets"], failed, "{demo:#}");
+            let (state, reason) = (&d["last_reset_failure"][0], &d["last_reset_failure"][1]);
+            assert!(
+                state.as_u64().unwrap() + 8 >= demo["states"].as_u64().unwrap(),
+                "{demo:#}"
+            );
+            assert!(
+                reason.as_str().unwrap().contains("is outside the arena"),
+                "{demo:#}"
+            );
+        } else {
+            assert_eq!(d["failed_resets"], 0, "{demo:#}");
+        }
+    }
 }
 
 #[test]

@@ -20,7 +20,7 @@
 //!   env steps so far (the heartbeat).
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rfcl_core::lease::{EpisodeReport, LeaseKind, ResetLease};
+use rfcl_core::lease::{shorten_reason, EpisodeReport, LeaseKind, ResetLease};
 use rfcl_core::transition::Transition;
 
 use crate::env::{Env, EnvError, Frame};
@@ -36,6 +36,8 @@ pub enum RolloutError {
         env: usize,
         lease_id: u64,
         kind: LeaseKind,
+        /// The lease's, for its report ([`Rollout::reset_failure_report`]).
+        stage_epoch: u64,
         error: EnvError,
     },
     #[error("env {env}: step {step} of lease {lease_id} failed: {error}")]
@@ -145,6 +147,7 @@ pub struct Rollout {
     env_steps: u64,
     episodes: u64,
     abandoned: u64,
+    reset_failures_in_a_row: u32,
 }
 
 impl Rollout {
@@ -166,6 +169,7 @@ impl Rollout {
             env_steps: 0,
             episodes: 0,
             abandoned: 0,
+            reset_failures_in_a_row: 0,
         }
     }
 
@@ -228,6 +232,36 @@ impl Rollout {
         self.episodes
     }
 
+    /// Resets that failed since the last one that worked, over all envs: one bad demo state
+    /// fails once, an env that cannot reset at all fails every time.
+    pub fn reset_failures_in_a_row(&self) -> u32 {
+        self.reset_failures_in_a_row
+    }
+
+    /// The report of a lease whose reset failed ([`RolloutError::Reset`]): no episode ran, so it
+    /// has no steps and no success, and carries the reason (shortened to the wire's bound).
+    pub fn reset_failure_report(
+        &self,
+        lease_id: u64,
+        stage_epoch: u64,
+        error: &EnvError,
+    ) -> EpisodeReport {
+        EpisodeReport {
+            lease_id,
+            success_at_end: false,
+            success_once: false,
+            episode_return: 0.0,
+            length: 0,
+            policy_version: 0,
+            stage_epoch,
+            actor_id: self.settings.actor_id,
+            actor_env_steps: self.env_steps,
+            policy_env_steps: 0,
+            sim_restarts: self.sim_restarts(),
+            reset_failure: Some(shorten_reason(&error.to_string())),
+        }
+    }
+
     /// Episodes dropped unfinished by [`Rollout::abandon_epochs_before`].
     pub fn abandoned(&self) -> u64 {
         self.abandoned
@@ -287,12 +321,20 @@ impl Rollout {
             slot.env
                 .reset_to_state(lease.reset.seed, &lease.reset.options, &lease.env_state)
         };
-        let obs = reset.map_err(|error| RolloutError::Reset {
-            env,
-            lease_id: lease.lease_id,
-            kind: lease.kind,
-            error,
-        })?;
+        let obs = match reset {
+            Ok(obs) => obs,
+            Err(error) => {
+                self.reset_failures_in_a_row += 1;
+                return Err(RolloutError::Reset {
+                    env,
+                    lease_id: lease.lease_id,
+                    kind: lease.kind,
+                    stage_epoch: lease.stage_epoch,
+                    error,
+                });
+            }
+        };
+        self.reset_failures_in_a_row = 0;
         slot.episode = Some(Episode {
             lease,
             obs,
@@ -396,6 +438,7 @@ impl Rollout {
                         policy_env_steps: done.policy_env_steps,
                         // Stamped below, once every env has stepped (a restart may happen in any).
                         sim_restarts: 0,
+                        reset_failure: None,
                     },
                 ));
             }
@@ -603,6 +646,7 @@ mod tests {
                 actor_env_steps: 4,
                 policy_env_steps: 500,
                 sim_restarts: 0,
+                reset_failure: None,
             }
         );
         assert_eq!(r.idle_envs(), [0]);
@@ -635,6 +679,28 @@ mod tests {
             "{err}"
         );
         assert!(err.to_string().contains("lease 9"), "{err}");
+        assert_eq!(r.reset_failures_in_a_row(), 1);
+        // Its report: no episode, the reason, the lease's epoch.
+        let RolloutError::Reset {
+            lease_id,
+            stage_epoch,
+            error,
+            ..
+        } = &err
+        else {
+            unreachable!()
+        };
+        let report = r.reset_failure_report(*lease_id, *stage_epoch, error);
+        assert_eq!((report.lease_id, report.length, report.actor_id), (9, 0, 7));
+        assert!(!report.success_once && report.episode_return == 0.0);
+        assert_eq!(
+            report.reset_failure.as_deref(),
+            Some("state has 2 values, the env's state layout has 1")
+        );
+        assert!(r
+            .begin(0, lease(8, LeaseKind::DemoState, vec![], 5, 1))
+            .is_ok_and(|()| r.reset_failures_in_a_row() == 0));
+        r.abandon_epochs_before(u64::MAX);
         // The env stays idle and takes a good lease.
         assert_eq!(r.idle_envs(), [0]);
         r.begin(0, lease(10, LeaseKind::DemoState, vec![1.0], 5, 1))

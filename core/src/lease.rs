@@ -64,4 +64,42 @@ pub struct EpisodeReport {
     /// itself shows nothing: this count is how the run sees it.
     #[serde(default)]
     pub sim_restarts: u64,
+    /// Why the actor could not reset its env to the lease's state, when it could not: the episode
+    /// never ran (`length` 0, no success), and the curriculum counts the failure against the
+    /// lease's demo instead of as an outcome.
+    #[serde(default)]
+    pub reset_failure: Option<String>,
+}
+
+/// The longest reset-failure reason a report carries, in bytes; an actor shortens longer ones
+/// (a Python traceback) with [`shorten_reason`].
+pub const MAX_RESET_FAILURE_BYTES: usize = 2048;
+
+/// `reason` cut to at most [`MAX_RESET_FAILURE_BYTES`] bytes on a character boundary, its end
+/// kept (a traceback's last line says what failed).
+pub fn shorten_reason(reason: &str) -> String {
+    if reason.len() <= MAX_RESET_FAILURE_BYTES {
+        return reason.to_owned();
+    }
+    let marker = "...";
+    let mut start = reason.len() - (MAX_RESET_FAILURE_BYTES - marker.len());
+    while !reason.is_char_boundary(start) {
+        start += 1;
+    }
+    format!("{marker}{}", &reason[start..])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_long_reason_keeps_its_end_within_the_bound() {
+        assert_eq!(shorten_reason("bad state"), "bad state");
+        let traceback = format!("{}ValueError: qpos is NaN", "é".repeat(2000));
+        let short = shorten_reason(&traceback);
+        assert!(short.len() <= MAX_RESET_FAILURE_BYTES, "{}", short.len());
+        assert!(short.starts_with("..."));
+        assert!(short.ends_with("ValueError: qpos is NaN"));
+    }
 }

@@ -70,6 +70,7 @@ pub async fn acquire_report(
                         actor_env_steps: 0,
                         policy_env_steps: 0,
                         actor_sim_restarts: 0,
+                        reset_failure: String::new(),
                     };
                     let request = v1::ReportAndAcquireRequest {
                         report: Some(report),

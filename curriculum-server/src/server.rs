@@ -485,6 +485,7 @@ mod tests {
             actor_env_steps: 1,
             policy_env_steps: 0,
             sim_restarts: 0,
+            reset_failure: None,
         };
         state.report(&report, &shared.cfg, unix_now()).unwrap();
     }

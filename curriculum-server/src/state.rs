@@ -145,6 +145,56 @@ pub struct Stats {
     /// Simulator worker restarts of the forgotten actors: the run's total keeps them.
     #[serde(default)]
     pub forgotten_sim_restarts: u64,
+    /// Leases an actor could not reset its env to (a demo state the simulator refused), per demo
+    /// and for leases of no demo. Absent in older snapshots.
+    #[serde(default)]
+    pub failed_resets: FailedResets,
+}
+
+/// Leases whose reset failed in the actor: the episode never ran, the curriculum's outcome
+/// statistics are untouched, and the run goes on.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FailedResets {
+    /// Per demo id: how many, and the last one's start state and reason.
+    pub per_demo: BTreeMap<u32, DemoResetFailures>,
+    /// Eval leases and seed levels (no demo state).
+    pub other: u64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct DemoResetFailures {
+    pub count: u64,
+    pub last_start_index: u32,
+    pub last_reason: String,
+}
+
+impl FailedResets {
+    pub fn total(&self) -> u64 {
+        self.other + self.per_demo.values().map(|d| d.count).sum::<u64>()
+    }
+
+    fn record(&mut self, granted: &Granted, reason: &str) {
+        let demo = match granted {
+            Granted::Train(a) => match a.kind {
+                AssignmentKind::DemoState { demo, start_index } => Some((demo, start_index)),
+                AssignmentKind::Level {
+                    source: LevelSource::DemoStart { demo, .. },
+                    ..
+                } => Some((demo, 0)),
+                AssignmentKind::Level { .. } => None,
+            },
+            Granted::Eval { .. } => None,
+        };
+        match demo {
+            Some((demo, start_index)) => {
+                let d = self.per_demo.entry(demo as u32).or_default();
+                d.count += 1;
+                d.last_start_index = start_index as u32;
+                d.last_reason = reason.to_owned();
+            }
+            None => self.other += 1,
+        }
+    }
 }
 
 impl Stats {
@@ -344,6 +394,15 @@ impl ServerState {
             actor.record_sim_restarts(report.sim_restarts);
         }
         let grant = taken?;
+        if let Some(reason) = &report.reset_failure {
+            self.stats.failed_resets.record(&grant.assignment, reason);
+            self.reports_since_snapshot += 1;
+            return Ok(ReportResult {
+                applied: true,
+                stage_change: None,
+                eval: matches!(grant.assignment, Granted::Eval { .. }),
+            });
+        }
         self.stats
             .actors
             .entry(report.actor_id)
@@ -512,6 +571,7 @@ mod tests {
                 actor_env_steps: 0,
                 policy_env_steps: 0,
                 sim_restarts,
+                reset_failure: None,
             };
             state.report(&report, &cfg, 1.0).unwrap();
         };
@@ -570,7 +630,62 @@ mod tests {
             actor_env_steps: 5,
             policy_env_steps: 0,
             sim_restarts: 3,
+            reset_failure: None,
         }
+    }
+
+    #[test]
+    fn a_failed_reset_is_counted_against_its_demo_and_changes_no_outcome() {
+        let (cfg, demos, mut state) = one_demo();
+        let train = AcquireRequest {
+            actor_id: 1,
+            env_index: 0,
+            eval: false,
+        };
+        let lease = state.acquire(train, &cfg, &demos, 1.0).unwrap();
+        let curriculum = state.curriculum.clone();
+        let mut failed = report_of(&lease, 1, 0);
+        (
+            failed.success_at_end,
+            failed.success_once,
+            failed.episode_return,
+        ) = (false, false, 0.0);
+        failed.reset_failure = Some("state field `x` is invalid".into());
+        assert!(state.report(&failed, &cfg, 2.0).unwrap().applied);
+        // The lease is closed (a repeat is a duplicate), the outcome statistics untouched.
+        assert!(state.report(&failed, &cfg, 2.0).is_err());
+        assert_eq!(state.curriculum, curriculum);
+        assert_eq!((state.stats.env_steps, state.stats.episodes), (0, 0));
+        assert_eq!(state.stats.actors[&1].episodes, 0);
+        let view = state.view("run", "PointMaze-v0", 2.0, 50_000);
+        assert_eq!(view.failed_resets, 1);
+        let d = &view.demos[0].difficulty;
+        assert_eq!(d.failed_resets, 1);
+        assert_eq!(
+            d.last_reset_failure,
+            Some((lease.start_index, "state field `x` is invalid".to_owned()))
+        );
+        // An eval lease's failure is counted for the run, not a demo.
+        let eval = AcquireRequest {
+            eval: true,
+            ..train
+        };
+        let lease = state.acquire(eval, &cfg, &demos, 3.0).unwrap();
+        let mut failed = report_of(&lease, 1, 0);
+        (
+            failed.success_at_end,
+            failed.success_once,
+            failed.episode_return,
+        ) = (false, false, 0.0);
+        failed.reset_failure = Some("seed refused".into());
+        state.report(&failed, &cfg, 3.0).unwrap();
+        assert_eq!(state.stats.failed_resets.total(), 2);
+        assert_eq!(state.stats.failed_resets.other, 1);
+        // Snapshots written before the counter existed still load, with none.
+        let mut old = serde_json::to_value(&state.stats).unwrap();
+        old.as_object_mut().unwrap().remove("failed_resets");
+        let old: Stats = serde_json::from_value(old).unwrap();
+        assert_eq!(old.failed_resets, FailedResets::default());
     }
 
     #[test]

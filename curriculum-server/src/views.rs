@@ -101,6 +101,7 @@ impl ServerState {
             .enumerate()
             .map(|(i, (d, a))| {
                 let record = history.demos().get(i).cloned().unwrap_or_default();
+                let failures = self.stats.failed_resets.per_demo.get(&(i as u32));
                 DemoBar {
                     demo: i as u32,
                     // Known only to the service: `Shared::view` fills it in.
@@ -124,6 +125,9 @@ impl ServerState {
                             .iter()
                             .map(|&(steps, t)| [steps, u64::from(t)])
                             .collect(),
+                        failed_resets: failures.map_or(0, |f| f.count),
+                        last_reset_failure: failures
+                            .map(|f| (f.last_start_index, f.last_reason.clone())),
                     },
                 }
             })
@@ -193,6 +197,7 @@ impl ServerState {
             open_leases: self.leases.open_count() as u64,
             expired_leases: self.leases.expired_total,
             sim_worker_restarts: self.stats.sim_worker_restarts(),
+            failed_resets: self.stats.failed_resets.total(),
             refused_reports: RefusedReports {
                 duplicate: r.duplicate,
                 expired: r.expired,

@@ -35,6 +35,7 @@ async fn chromium_renders_the_demo_bars() {
             policy_env_steps: 0,
             // One simulator worker restart, reported with every episode: counted once.
             actor_sim_restarts: 1,
+            reset_failure: String::new(),
         };
         client.report(report).await.unwrap();
     }

@@ -37,6 +37,7 @@ fn report_for(lease: &v1::ResetLease, success: bool, ret: f64) -> v1::EpisodeRep
         actor_env_steps: 0,
         policy_env_steps: 0,
         actor_sim_restarts: 0,
+        reset_failure: String::new(),
     }
 }
 
@@ -272,7 +273,11 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
         report: Some(report_for(&lease2, false, 0.0)),
         next: Some(acquire_req(0)),
     };
-    let reply = client.report_and_acquire(both).await.unwrap().into_inner();
+    let reply = client
+        .report_and_acquire(both.clone())
+        .await
+        .unwrap()
+        .into_inner();
     assert!(reply.ack.unwrap().applied);
     let lease3 = reply.lease.expect("the next lease");
     assert!(lease3.lease_id > lease2.lease_id);
@@ -655,7 +660,7 @@ async fn reports_beyond_their_lease_are_refused_counted_and_leave_it_open() {
         length: u32::MAX,
         ..report_for(&lease, true, 1.0)
     };
-    let status = client.report(too_long).await.unwrap_err();
+    let status = client.report(too_long.clone()).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::InvalidArgument);
     let bound = format!("at most {}", lease.time_limit);
     assert!(

@@ -76,6 +76,9 @@ class WallReach(gym.Env):
 
     def rfcl_set_state(self, state) -> np.ndarray:
         state = np.asarray(state, dtype=np.float64)
+        if np.any(np.abs(state[0:2]) > 1.0):
+            # A state the env cannot be in: refused, and rfcl counts it against its demo.
+            raise ValueError(f"pos {state[0:2]} is outside the arena [-1, 1]²")
         self.pos, self.vel, self.goal = state[0:2].copy(), state[2:4].copy(), state[4:6].copy()
         return self._obs()
 

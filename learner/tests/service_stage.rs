@@ -133,6 +133,7 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
                 actor_env_steps: 0,
                 policy_env_steps: 0,
                 actor_sim_restarts: 0,
+                reset_failure: String::new(),
             })
             .await;
     }

@@ -1,6 +1,8 @@
 //! The one place where wire types become domain types and back. Every malformed message is
 //! rejected here with an error that names the message and the field.
-use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
+use rfcl_core::lease::{
+    AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease, MAX_RESET_FAILURE_BYTES,
+};
 use rfcl_core::video::{EvalVideo, VideoMeta, MAX_EVAL_VIDEO_BYTES, MAX_VIDEO_RETURN};
 
 use crate::v1;
@@ -183,6 +185,7 @@ impl From<EpisodeReport> for v1::EpisodeReport {
             actor_env_steps: r.actor_env_steps,
             policy_env_steps: r.policy_env_steps,
             actor_sim_restarts: r.sim_restarts,
+            reset_failure: r.reset_failure.unwrap_or_default(),
         }
     }
 }
@@ -197,7 +200,29 @@ impl TryFrom<v1::EpisodeReport> for EpisodeReport {
                 "expected a lease id from Acquire, got 0",
             ));
         }
-        if wire.length == 0 {
+        if wire.reset_failure.len() > MAX_RESET_FAILURE_BYTES {
+            return Err(WireError::new(
+                "EpisodeReport",
+                "reset_failure",
+                format!(
+                    "expected at most {MAX_RESET_FAILURE_BYTES} bytes, got {}",
+                    wire.reset_failure.len()
+                ),
+            ));
+        }
+        let failed = !wire.reset_failure.is_empty();
+        if failed && (wire.length != 0 || wire.success_once || wire.episode_return != 0.0) {
+            return Err(WireError::new(
+                "EpisodeReport",
+                "reset_failure",
+                format!(
+                    "a lease whose reset failed ran no episode: expected length 0, no success and \
+                     return 0, got length {}, success_once {}, return {}",
+                    wire.length, wire.success_once, wire.episode_return
+                ),
+            ));
+        }
+        if !failed && wire.length == 0 {
             return Err(WireError::new(
                 "EpisodeReport",
                 "length",
@@ -230,6 +255,7 @@ impl TryFrom<v1::EpisodeReport> for EpisodeReport {
             actor_env_steps: wire.actor_env_steps,
             policy_env_steps: wire.policy_env_steps,
             sim_restarts: wire.actor_sim_restarts,
+            reset_failure: failed.then_some(wire.reset_failure),
         })
     }
 }
@@ -566,6 +592,7 @@ mod tests {
             actor_env_steps: 1000,
             policy_env_steps: 800,
             sim_restarts: 2,
+            reset_failure: None,
         };
         let wire: v1::EpisodeReport = report.clone().into();
         assert_eq!(wire.actor_sim_restarts, 2);
@@ -587,6 +614,38 @@ mod tests {
         let status: tonic::Status = EpisodeReport::try_from(bad).unwrap_err().into();
         assert_eq!(status.code(), tonic::Code::InvalidArgument);
         assert!(status.message().contains("EpisodeReport.lease_id"));
+    }
+
+    #[test]
+    fn a_failed_reset_is_reported_without_an_episode() {
+        let failed = EpisodeReport {
+            lease_id: 4,
+            success_at_end: false,
+            success_once: false,
+            episode_return: 0.0,
+            length: 0,
+            policy_version: 0,
+            stage_epoch: 1,
+            actor_id: 2,
+            actor_env_steps: 10,
+            policy_env_steps: 0,
+            sim_restarts: 0,
+            reset_failure: Some("state field `collided` is invalid".into()),
+        };
+        let wire: v1::EpisodeReport = failed.clone().into();
+        assert_eq!(EpisodeReport::try_from(wire.clone()).unwrap(), failed);
+        let mut ran = wire.clone();
+        ran.length = 5;
+        let err = EpisodeReport::try_from(ran).unwrap_err();
+        assert_eq!(err.field, "reset_failure");
+        assert!(err.problem.contains("got length 5"), "{err}");
+        let mut long = wire;
+        long.reset_failure = "x".repeat(MAX_RESET_FAILURE_BYTES + 1);
+        let err = EpisodeReport::try_from(long).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "malformed EpisodeReport.reset_failure: expected at most 2048 bytes, got 2049"
+        );
     }
 
     #[test]

@@ -80,6 +80,7 @@ fn write_seed_corpus() {
         actor_env_steps: 4000,
         policy_env_steps: 3900,
         actor_sim_restarts: 1,
+        reset_failure: String::new(),
     };
     let acquire = v1::AcquireRequest {
         actor_id: 2,

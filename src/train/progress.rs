@@ -310,6 +310,10 @@ pub struct Summary {
     /// over all actors and their respawns); each replayed its episode, so nothing else shows it.
     #[serde(default)]
     pub sim_worker_restarts: u64,
+    /// Leases an actor could not reset its env to (the episode never ran; per demo with the last
+    /// reason in `demos`).
+    #[serde(default)]
+    pub failed_resets: u64,
     /// Transition records the learner took in per transport (its Health; the last session's
     /// learner process): same-host actors use shared memory, remote ones gRPC.
     #[serde(default)]
@@ -533,6 +537,7 @@ pub fn summarize(
         actor_respawns: progress.actor_respawns,
         service_restarts: progress.restarts.clone(),
         sim_worker_restarts: view.sim_worker_restarts,
+        failed_resets: view.failed_resets,
         transitions_shm: counts.shm_records,
         transitions_grpc: counts.grpc_records,
         transitions_lost_shm: counts.shm_lost_records,
@@ -817,7 +822,7 @@ mod tests {
         let view: DashboardView = serde_json::from_value(serde_json::json!({
             "run_name": "r", "env_id": "PointMaze-v0", "stage": 2, "stage_epoch": 1,
             "env_steps": 2900, "stage_1_env_steps": 1500, "episodes": 100, "episodes_per_s": 1.0,
-            "open_leases": 3, "expired_leases": 4, "sim_worker_restarts": 2,
+            "open_leases": 3, "expired_leases": 4, "sim_worker_restarts": 2, "failed_resets": 5,
             "refused_reports": {"duplicate": 1, "expired": 2, "unknown": 0, "epoch_mismatch": 3, "malformed": 0},
             "solved_frac": 1.0, "demos": [], "levels": [], "actors": [], "evals": [],
             "history": [{"wall_s": 1.0, "env_steps": 2900, "stage": 2, "start_step_frac_avg": 0.0,
@@ -865,6 +870,7 @@ mod tests {
         let json = serde_json::to_value(&s).unwrap();
         assert_eq!(json["ending"], "budget");
         assert_eq!(json["sim_worker_restarts"], 2);
+        assert_eq!(json["failed_resets"], 5);
         assert_eq!(json["to_success"][1]["threshold"], 0.9);
         // 3100 - 2900 = 200 more in the learner; at most 2 × 10 in flight and (4 expired + 6
         // refused) × 10 unreported: 120 explained, so 200 is not.

@@ -96,7 +96,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 <h1>rfcl curriculum · {name} <small>({env})</small></h1>
 <p class="kv"><span id="stage">stage <b>{stage}</b> (epoch {epoch}){finished}</span><span>env steps <b>{steps}</b></span>
 <span>episodes {episodes} ({eps:.1}/s)</span><span>open leases {open}</span><span>expired leases {expired}</span>
-<span>sim worker restarts {restarts}</span>
+<span>sim worker restarts {restarts}</span><span>failed resets {failedresets}</span>
 <span>demos solved {solved:.0}%</span></p>
 <p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}, not the lease holder {nothold}, over the time limit {overlim}</span>
 <span>unauthenticated calls {unauth}</span><span>oversized requests {oversized}</span><span>dashboard connections refused {dashrefused}</span><span>actors forgotten {forgotten}</span><span>snapshot failures {snapfail}</span></p>
@@ -116,6 +116,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         open = view.open_leases,
         expired = view.expired_leases,
         restarts = view.sim_worker_restarts,
+        failedresets = view.failed_resets,
         solved = view.solved_frac * 100.0,
         dup = view.refused_reports.duplicate,
         rexp = view.refused_reports.expired,
@@ -162,7 +163,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
     h.push_str("\n<table id=\"demos\"><tr><th>demo (episode id)</th><th>t_i</th><th>S_i</th><th>t_i / S_i</th><th>frontier success (last m)</th><th>solved</th><th>states / 10k steps</th><th>steps since it moved</th><th>frontier episodes, success</th><th>share of episodes</th><th>flag</th></tr>\n");
     for d in &view.demos {
         let x = &d.difficulty;
-        let flag = match (x.stalled, x.cell) {
+        let mut flag = match (x.stalled, x.cell) {
             (true, Some([row, col])) => format!(
                 "<span class=err>stalled at state {} (cell {row}, {col})</span>",
                 d.t
@@ -170,6 +171,14 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
             (true, None) => format!("<span class=err>stalled at state {}</span>", d.t),
             (false, _) => String::new(),
         };
+        if let Some((state, reason)) = &x.last_reset_failure {
+            let _ = write!(
+                flag,
+                " <span class=err title=\"{}\">{} failed reset(s), last at state {state}</span>",
+                esc(reason),
+                x.failed_resets
+            );
+        }
         let _ = writeln!(
             h,
             "<tr class=\"demo-bar\"><td>{} ({})</td><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.2}</td><td>{}</td><td>{:.1}</td><td>{}</td><td>{}, {:.2}</td><td>{:.2}</td><td>{}</td></tr>",

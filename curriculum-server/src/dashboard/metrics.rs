@@ -91,6 +91,12 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
     );
     counter(
         &mut r,
+        "failed_resets",
+        "Leases an actor could not reset its env to (the episode never ran)",
+        view.failed_resets,
+    );
+    counter(
+        &mut r,
         "actors_forgotten",
         "Actor ids dropped from the per-actor table after service.forget_actors_after_s without a call",
         view.actors_forgotten,

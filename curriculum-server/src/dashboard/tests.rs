@@ -25,6 +25,8 @@ fn view() -> DashboardView {
                     stalled: true,
                     cell: Some([4, 9]),
                     frontier: vec![[20_000, 32], [45_000, 10]],
+                    failed_resets: 0,
+                    last_reset_failure: None,
                 },
             },
             DemoBar {
@@ -45,6 +47,8 @@ fn view() -> DashboardView {
                     stalled: false,
                     cell: Some([1, 2]),
                     frontier: vec![[30_000, 21], [50_000, 13], [60_000, 5], [66_000, 0]],
+                    failed_resets: 0,
+                    last_reset_failure: None,
                 },
             },
         ],
@@ -113,6 +117,29 @@ fn the_page_shows_sim_worker_restarts_in_total_and_per_actor() {
     assert!(
         html.contains("<td>100</td><td>4</td><td>1</td><td>7</td></tr>"),
         "{html}"
+    );
+}
+
+#[test]
+fn the_page_shows_failed_resets_in_total_and_per_demo_with_the_reason() {
+    let mut v = view();
+    v.failed_resets = 3;
+    v.demos[1].difficulty.failed_resets = 3;
+    v.demos[1].difficulty.last_reset_failure = Some((
+        12,
+        "state field `collided` is invalid: 50 <is> neither 0 nor 1".into(),
+    ));
+    let html = render_html(&v, 2);
+    assert!(html.contains("failed resets 3"), "{html}");
+    assert!(
+        html.contains("3 failed reset(s), last at state 12</span>"),
+        "{html}"
+    );
+    assert!(html.contains("50 &lt;is&gt; neither"), "{html}");
+    let text = metrics_text(&v, 1);
+    assert!(
+        text.contains("rfcl_curriculum_failed_resets_total 3"),
+        "{text}"
     );
 }
 

@@ -26,6 +26,10 @@ pub struct DashboardView {
     /// its episode, so nothing else shows it). Absent from older servers' JSON.
     #[serde(default)]
     pub sim_worker_restarts: u64,
+    /// Leases an actor could not reset its env to, over the run (per demo in `demos`). Absent
+    /// from older servers' JSON.
+    #[serde(default)]
+    pub failed_resets: u64,
     pub refused_reports: RefusedReports,
     /// Calls refused UNAUTHENTICATED (no run token or a wrong one) since the server started.
     #[serde(default)]
@@ -251,6 +255,12 @@ pub struct DemoDifficulty {
     pub cell: Option<[u32; 2]>,
     /// `[env steps, t_i]` after each move of the frontier, oldest first.
     pub frontier: Vec<[u64; 2]>,
+    /// Leases of this demo whose reset failed in the actor, and the last one's state index and
+    /// reason. Absent from older servers' JSON.
+    #[serde(default)]
+    pub failed_resets: u64,
+    #[serde(default)]
+    pub last_reset_failure: Option<(u32, String)>,
 }
 
 /// One forward-curriculum level (spec 3).

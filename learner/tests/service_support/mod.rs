@@ -142,6 +142,7 @@ impl Curriculum {
                     actor_env_steps: 0,
                     policy_env_steps: 0,
                     actor_sim_restarts: 0,
+                    reset_failure: String::new(),
                 })
                 .await
                 .unwrap()

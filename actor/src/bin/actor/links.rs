@@ -204,7 +204,7 @@ impl Curriculum {
             next: Some(v1::AcquireRequest::from(next)),
         };
         let result = retrying(&self.peer, "ReportAndAcquire", self.retry_for, || {
-            let mut c = self.client.clone();
+            let (mut c, wire) = (self.client.clone(), wire.clone());
             async move { c.report_and_acquire(wire).await }
         })
         .await?;
@@ -285,7 +285,7 @@ impl Curriculum {
     pub async fn report(&self, report: &EpisodeReport) -> Result<Reported> {
         let wire = v1::EpisodeReport::from(report.clone());
         let result = retrying(&self.peer, "Report", self.retry_for, || {
-            let mut c = self.client.clone();
+            let (mut c, wire) = (self.client.clone(), wire.clone());
             async move { c.report(wire).await }
         })
         .await?;

@@ -10,11 +10,11 @@ use anyhow::{bail, Context, Result};
 use rfcl_actor::eval::{episodes_per_eval_actor, EvalSchedule};
 use rfcl_actor::net::{policy_from_weights, published_policy_bytes};
 use rfcl_actor::policy::PolicyHandle;
-use rfcl_actor::rollout::{derive_seed, Rollout, RolloutSettings, StepOutput};
+use rfcl_actor::rollout::{derive_seed, Rollout, RolloutError, RolloutSettings, StepOutput};
 use rfcl_actor::suite::make_env;
 use rfcl_actor::video::{encode_gif, Recorder};
 use rfcl_core::config::RunConfig;
-use rfcl_core::lease::{AcquireRequest, EpisodeReport};
+use rfcl_core::lease::{AcquireRequest, EpisodeReport, ResetLease};
 use rfcl_core::transition::{RecordLayout, Transition};
 use rfcl_core::video::{EvalVideo, VideoMeta};
 use rfcl_proto::auth::ClientAuth;
@@ -421,7 +421,7 @@ impl TrainLoop<'_> {
                 let Some(lease) = self.run.curriculum.acquire(req).await? else {
                     return Ok(Stopped::CurriculumFinished);
                 };
-                self.rollout.begin(env, lease)?;
+                self.start(env, lease).await?;
             }
             out.clear();
             self.rollout.step(self.policy.as_mut(), &mut out)?;
@@ -474,6 +474,14 @@ impl TrainLoop<'_> {
             eval: false,
         };
         let (reported, lease) = self.run.curriculum.report_and_acquire(report, next).await?;
+        self.acknowledged(reported, report.lease_id);
+        if let Some(lease) = lease {
+            self.start(env, lease).await?;
+        }
+        Ok(())
+    }
+
+    fn acknowledged(&mut self, reported: Reported, lease_id: u64) {
         match reported {
             Reported::Acked { stage_epoch, .. } => {
                 let dropped = self.rollout.abandon_epochs_before(stage_epoch);
@@ -487,15 +495,65 @@ impl TrainLoop<'_> {
             }
             Reported::Refused(why) => {
                 self.refused += 1;
-                tracing::warn!(lease = report.lease_id, "report refused: {why}");
+                tracing::warn!(lease = lease_id, "report refused: {why}");
             }
         }
-        if let Some(lease) = lease {
-            self.rollout.begin(env, lease)?;
+    }
+
+    /// Starts `lease` in env `env`. A lease whose state the env refuses (a bad demo state) is
+    /// reported as failed with the reason, and the next lease taken in the same round trip: the
+    /// curriculum server counts it against its demo and the run goes on. Only an env that fails
+    /// [`MAX_RESET_FAILURES_IN_A_ROW`] resets in a row, whatever the state, ends the actor.
+    async fn start(&mut self, env: usize, mut lease: ResetLease) -> Result<()> {
+        loop {
+            let (lease_id, stage_epoch, error) = match self.rollout.begin(env, lease) {
+                Ok(()) => return Ok(()),
+                Err(RolloutError::Reset {
+                    lease_id,
+                    stage_epoch,
+                    error,
+                    ..
+                }) if self.rollout.reset_failures_in_a_row() < MAX_RESET_FAILURES_IN_A_ROW => {
+                    (lease_id, stage_epoch, error)
+                }
+                Err(e) => {
+                    return Err(e).with_context(|| {
+                        format!(
+                            "{} resets in a row failed: the env cannot reset at all",
+                            self.rollout.reset_failures_in_a_row()
+                        )
+                    })
+                }
+            };
+            tracing::warn!(
+                lease = lease_id,
+                "could not reset env {env} to the lease's state, reporting it as failed: {error}"
+            );
+            let report = self
+                .rollout
+                .reset_failure_report(lease_id, stage_epoch, &error);
+            let next = AcquireRequest {
+                actor_id: report.actor_id,
+                env_index: env as u32,
+                eval: false,
+            };
+            let (reported, next) = self
+                .run
+                .curriculum
+                .report_and_acquire(&report, next)
+                .await?;
+            self.acknowledged(reported, lease_id);
+            match next {
+                Some(next) => lease = next,
+                None => return Ok(()),
+            }
         }
-        Ok(())
     }
 }
+
+/// Resets that may fail in a row before the actor gives up on its env: a bad demo state fails
+/// one lease, an env that cannot reset fails them all.
+const MAX_RESET_FAILURES_IN_A_ROW: u32 = 8;
 
 /// Waits for policies; evaluates the ones that pass a multiple of `eval_freq` (spec 5.7).
 async fn eval_loop(
