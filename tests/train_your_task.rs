@@ -68,10 +68,53 @@ fn record(config: &Path, policy: &str, out: &Path) {
     assert!(ok && report.contains("5 of 5 demos pass"), "{report}");
 }
 
-/// Every process of `rfcl train` (and their simulator workers) finds the env's module.
-fn train(args: Vec<String>, run_dir: &Path, log: &Path) -> Training {
+/// `rfcl train CONFIG train.dataset_path=DEMOS OVERRIDES` into `dir/run`, which must succeed
+/// within `limit`: the run directory and its summary. Every process of the run (and their
+/// simulator workers) finds the env's module.
+fn train(
+    dir: &Path,
+    config: &Path,
+    demos: &Path,
+    overrides: &[&str],
+    limit: Duration,
+) -> (PathBuf, serde_json::Value) {
     std::env::set_var("PYTHONPATH", example(""));
-    Training::start(&args, run_dir, log)
+    let run_dir = dir.join("run");
+    let mut args = vec![
+        config.display().to_string(),
+        format!("train.dataset_path={}", demos.display()),
+    ];
+    args.extend(overrides.iter().map(|o| o.to_string()));
+    args.extend(["--run-dir".into(), run_dir.display().to_string()]);
+    let mut training = Training::start(&args, &run_dir, &dir.join("rfcl.stderr"));
+    let status = training.wait(limit);
+    assert!(status.success(), "{}", training.stderr());
+    let summary = training.summary();
+    (run_dir, summary)
+}
+
+/// The venv's Python runs `script` with the tutorial's PYTHONPATH (the env's module and
+/// rfcl_sim), which must succeed: its stdout.
+fn python(script: &str) -> String {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = Command::new(root.join(".venv/bin/python"))
+        .args(["-c", script])
+        .env(
+            "PYTHONPATH",
+            format!(
+                "{}:{}",
+                example("").display(),
+                root.join("python").display()
+            ),
+        )
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
 #[test]
@@ -82,20 +125,7 @@ fn the_tutorial_trains_a_task_rfcl_does_not_know() {
     let demos = dir.path().join("wall_reach.h5");
     record(&config, "wall_reach:scripted_policy", &demos);
 
-    let run_dir = dir.path().join("run");
-    let mut training = train(
-        vec![
-            config.display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
-        ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
-    );
-    let status = training.wait(Duration::from_secs(900));
-    assert!(status.success(), "{}", training.stderr());
-    let summary = training.summary();
+    let (run_dir, summary) = train(dir.path(), &config, &demos, &[], Duration::from_secs(900));
     assert_reached(&summary, 0.9);
 
     // rfcl eval, then the same held-out seeds with the NumPy policy through the same adapter.
@@ -122,27 +152,7 @@ fn the_tutorial_trains_a_task_rfcl_does_not_know() {
          print(wins)\n",
         run = run_dir.display().to_string(),
     );
-    let python = Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python");
-    let out = Command::new(&python)
-        .args(["-c", &script])
-        .env(
-            "PYTHONPATH",
-            format!(
-                "{}:{}",
-                example("").display(),
-                Path::new(env!("CARGO_MANIFEST_DIR"))
-                    .join("python")
-                    .display()
-            ),
-        )
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let wins: u32 = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap();
+    let wins: u32 = python(&script).trim().parse().unwrap();
     let from_rfcl = (success * f64::from(episodes)).round() as u32;
     // The same deterministic policy and env on the same seeds; the two policies' actions agree
     // to 1e-5 (service_export.rs), so an outcome could only flip on a knife edge.
@@ -159,23 +169,17 @@ fn a_stock_mujoco_env_trains_with_no_user_code() {
     let config = example("fetch_reach.yml");
     let demos = dir.path().join("fetch_reach.h5");
     record(&config, "fetch_reach:scripted_policy", &demos);
-    let run_dir = dir.path().join("run");
-    let mut training = train(
-        vec![
-            config.display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
-            "train.steps=20000".into(),
-            "sac.eval_freq=10000".into(),
-            "service.stop_at_eval_success=null".into(),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
+    let (_, summary) = train(
+        dir.path(),
+        &config,
+        &demos,
+        &[
+            "train.steps=20000",
+            "sac.eval_freq=10000",
+            "service.stop_at_eval_success=null",
         ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
+        Duration::from_secs(600),
     );
-    let status = training.wait(Duration::from_secs(600));
-    assert!(status.success(), "{}", training.stderr());
-    let summary = training.summary();
     assert_eq!(summary["ending"], "budget", "{summary:#}");
     // The reverse curriculum moved: most demos' frontiers left their last state. (Not every one:
     // from a success state a 16-step episode must hold the goal, which one demo in five may not
@@ -202,7 +206,6 @@ fn a_demo_state_the_env_refuses_is_counted_against_its_demo_and_the_run_goes_on(
     record(&config, "wall_reach:scripted_policy", &demos);
     // One demo's last 8 states put the point outside the arena: finite numbers, so the file
     // loads, but WallReach's rfcl_set_state refuses them, and stage 1 starts there.
-    let python = Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python");
     let script = format!(
         "import h5py\n\
          with h5py.File({file:?}, 'r+') as f:\n\
@@ -212,32 +215,14 @@ fn a_demo_state_the_env_refuses_is_counted_against_its_demo_and_the_run_goes_on(
          \x20   print(name.split('_')[1])\n",
         file = demos.display().to_string(),
     );
-    let out = Command::new(&python)
-        .args(["-c", &script])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let bad: u64 = python(&script).trim().parse().unwrap();
+    let (_, summary) = train(
+        dir.path(),
+        &config,
+        &demos,
+        &["train.steps=6000", "service.stop_at_eval_success=null"],
+        Duration::from_secs(600),
     );
-    let bad: u64 = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap();
-    let run_dir = dir.path().join("run");
-    let mut training = train(
-        vec![
-            config.display().to_string(),
-            format!("train.dataset_path={}", demos.display()),
-            "train.steps=6000".into(),
-            "service.stop_at_eval_success=null".into(),
-            "--run-dir".into(),
-            run_dir.display().to_string(),
-        ],
-        &run_dir,
-        &dir.path().join("rfcl.stderr"),
-    );
-    let status = training.wait(Duration::from_secs(600));
-    assert!(status.success(), "{}", training.stderr());
-    let summary = training.summary();
     assert_eq!(summary["ending"], "budget", "{summary:#}");
     assert_eq!(summary["actor_respawns"], 0, "no actor died: {summary:#}");
     let failed = summary["failed_resets"].as_u64().unwrap();

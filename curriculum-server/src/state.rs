@@ -642,15 +642,16 @@ mod tests {
             env_index: 0,
             eval: false,
         };
+        let failed_report = |lease: &ResetLease, reason: &str| EpisodeReport {
+            success_at_end: false,
+            success_once: false,
+            episode_return: 0.0,
+            reset_failure: Some(reason.into()),
+            ..report_of(lease, 1, 0)
+        };
         let lease = state.acquire(train, &cfg, &demos, 1.0).unwrap();
         let curriculum = state.curriculum.clone();
-        let mut failed = report_of(&lease, 1, 0);
-        (
-            failed.success_at_end,
-            failed.success_once,
-            failed.episode_return,
-        ) = (false, false, 0.0);
-        failed.reset_failure = Some("state field `x` is invalid".into());
+        let failed = failed_report(&lease, "state field `x` is invalid");
         assert!(state.report(&failed, &cfg, 2.0).unwrap().applied);
         // The lease is closed (a repeat is a duplicate), the outcome statistics untouched.
         assert!(state.report(&failed, &cfg, 2.0).is_err());
@@ -671,14 +672,9 @@ mod tests {
             ..train
         };
         let lease = state.acquire(eval, &cfg, &demos, 3.0).unwrap();
-        let mut failed = report_of(&lease, 1, 0);
-        (
-            failed.success_at_end,
-            failed.success_once,
-            failed.episode_return,
-        ) = (false, false, 0.0);
-        failed.reset_failure = Some("seed refused".into());
-        state.report(&failed, &cfg, 3.0).unwrap();
+        state
+            .report(&failed_report(&lease, "seed refused"), &cfg, 3.0)
+            .unwrap();
         assert_eq!(state.stats.failed_resets.total(), 2);
         assert_eq!(state.stats.failed_resets.other, 1);
         // Snapshots written before the counter existed still load, with none.
