@@ -15,7 +15,8 @@ const TESTKIT: &str = "rfcl-testkit";
 
 /// Every workspace crate and the workspace crates it may depend on. The launcher (`rfcl`) is the
 /// one crate allowed to use the services' libraries: it runs them in-process for `rfcl bench` and
-/// `rfcl eval`, and reads the dashboard's JSON with the curriculum server's own types.
+/// `rfcl eval` (what it reads from a running service is the wire's, see
+/// [`the_launcher_reads_no_service_s_dashboard`]).
 fn allowed() -> BTreeMap<&'static str, BTreeSet<&'static str>> {
     // rfcl-runtime: what a binary's main() does (logging, tokio runtime, signals, exit status).
     let libs = [
@@ -159,4 +160,32 @@ fn services_meet_only_over_the_wire() {
             "{service} depends on another service: {others:?}"
         );
     }
+}
+
+/// What the launcher reads from a running curriculum server is `rfcl_core::run_state::RunState`
+/// (GetState), never the dashboard's view: a page can change without touching `rfcl train`'s
+/// progress and summary or `rfcl demos select`.
+#[test]
+fn the_launcher_reads_no_service_s_dashboard() {
+    let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut offenders = Vec::new();
+    let mut dirs = vec![src];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).expect("read src/") {
+            let path = entry.expect("a directory entry").path();
+            if path.is_dir() {
+                dirs.push(path);
+            } else if path.extension().is_some_and(|e| e == "rs") {
+                let text = std::fs::read_to_string(&path).expect("read a source file");
+                if text.contains("rfcl_curriculum::dashboard") || text.contains("DashboardView") {
+                    offenders.push(path.display().to_string());
+                }
+            }
+        }
+    }
+    assert!(
+        offenders.is_empty(),
+        "these launcher files use the curriculum server's dashboard types; read \
+         rfcl_core::run_state::RunState (GetState) instead: {offenders:?}"
+    );
 }

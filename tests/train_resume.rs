@@ -46,7 +46,13 @@ fn sigint_then_resume_runs_to_completion() {
         stopped["env_steps_accounting"]["explained"], true,
         "{stopped:#}"
     );
-    assert!(first.stderr().contains("--resume"), "says how to continue");
+    assert!(
+        first
+            .stderr()
+            .contains(&format!("rfcl train --resume {}", run_dir.display())),
+        "says how to continue: {}",
+        first.stderr()
+    );
     for pid in child_pids(&processes) {
         assert!(!alive(pid), "child {pid} outlived the interrupted session");
     }
@@ -58,12 +64,12 @@ fn sigint_then_resume_runs_to_completion() {
     let episodes_before = stopped["curriculum_episodes"].as_u64().unwrap();
     assert!(steps_before > 0 && episodes_before > 0);
 
+    // Resumed without a CONFIG: the run's stored one, with the overrides given.
     let mut resumed = Training::start(
         &[
-            test_config().display().to_string(),
-            format!("service.stop_at_eval_success={BAR}"),
             "--resume".into(),
             run_dir.display().to_string(),
+            format!("service.stop_at_eval_success={BAR}"),
         ],
         &run_dir,
         &dir.path().join("resumed.stderr"),

@@ -219,8 +219,8 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
         &self,
         _: Request<v1::GetStateRequest>,
     ) -> Result<Response<v1::CurriculumState>, Status> {
-        let view = self.shared.view();
-        let json = serde_json::to_string(&view).map_err(|e| Status::internal(e.to_string()))?;
+        let run = self.shared.view().run;
+        let json = serde_json::to_string(&run).map_err(|e| Status::internal(e.to_string()))?;
         let last_complete_eval_env_steps = crate::stop::last_complete_env_steps(
             &self.shared.lock().stats.evals,
             rfcl_core::config::episodes_per_eval(&self.shared.cfg),
@@ -228,8 +228,8 @@ impl v1::curriculum_server::Curriculum for CurriculumService {
         .unwrap_or(0);
         Ok(Response::new(v1::CurriculumState {
             json,
-            stage: view.stage,
-            stage_epoch: view.stage_epoch,
+            stage: run.stage,
+            stage_epoch: run.stage_epoch,
             last_complete_eval_env_steps,
         }))
     }

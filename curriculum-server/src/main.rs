@@ -94,9 +94,24 @@ async fn run(args: Args) -> Result<()> {
     let _lock = rfcl_core::run_lock::RunDirLock::acquire(&run_dir, "curriculum-server")?;
     // A server that finds its own snapshot in its run directory continues it (a restarted
     // container, a supervisor's restart): the run goes on without anyone passing --resume.
-    let snapshot_path = snapshot::snapshot_path(&run_dir);
-    let state = if args.resume.is_some() || snapshot_path.exists() {
-        let mut state = snapshot::load(&snapshot_path, &cfg.name)?;
+    let newest = snapshot::load_newest(&run_dir, &cfg.name)?;
+    if newest.is_none() && args.resume.is_some() {
+        bail!(
+            "--resume: {} holds no curriculum snapshot ({})",
+            run_dir.display(),
+            snapshot::SNAPSHOT_FILE
+        );
+    }
+    let state = if let Some(loaded) = newest {
+        if let Some(damage) = &loaded.skipped {
+            tracing::warn!(
+                "the newest snapshot is damaged ({}): resuming from the generation before it, {}; \
+                 the reports since then are lost",
+                rfcl_core::error::chain(damage),
+                loaded.path.display()
+            );
+        }
+        let mut state = loaded.state;
         let env_steps = state.stats.env_steps;
         let resumed = state
             .curriculum
@@ -160,7 +175,16 @@ async fn run(args: Args) -> Result<()> {
     .await?;
     let (grpc, dash) = bound.addrs()?;
     // One machine-readable line on stdout: `rfcl train` and tests read the ports from it.
-    println!("curriculum-server ready grpc={grpc} dashboard=http://{dash}/");
+    println!(
+        "{}",
+        rfcl_core::ready::ReadyLine::new(
+            "curriculum-server",
+            &[
+                ("grpc", &grpc.to_string()),
+                ("dashboard", &format!("http://{dash}/")),
+            ],
+        )
+    );
     serve(
         shared,
         bound,

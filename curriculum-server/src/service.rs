@@ -103,14 +103,14 @@ impl Shared {
         view.videos = videos.videos.into_iter().map(Into::into).collect();
         view.videos_refused = videos.refused;
         view.videos_evicted = videos.evicted;
-        for bar in &mut view.demos {
+        for bar in &mut view.run.demos {
             if let Some(&id) = self.demos.episode_ids.get(bar.demo as usize) {
                 bar.episode_id = id;
             }
         }
         if self.cfg.env.suite == Suite::Pointmaze {
             view.maze = Some(state.maze_view(&self.demos));
-            for bar in &mut view.demos {
+            for bar in &mut view.run.demos {
                 bar.difficulty.cell = self.demos.maze_cell(bar.demo as usize, bar.t as usize);
             }
         }

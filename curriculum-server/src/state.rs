@@ -13,12 +13,12 @@ use rfcl_core::demo::DemoSet;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease};
 use serde::{Deserialize, Serialize};
 
-use crate::dashboard::ProgressPoint;
 use crate::leases::{LeaseTable, ReportClaim, ReportRefusal};
 use crate::{
     stop, Applied, Assignment, AssignmentKind, Curriculum, CurriculumError, DemoMeta,
     EpisodeOutcome, LevelSource, StageStatus,
 };
+use rfcl_core::run_state::ProgressPoint;
 
 /// Seconds since the Unix epoch: lease times survive a restart from a snapshot.
 pub fn unix_now() -> f64 {
@@ -588,7 +588,7 @@ mod tests {
         assert_eq!(state.stats.actors[&1].sim_restarts, 3 + 4 + 1);
         assert_eq!(state.stats.actors[&2].sim_restarts, 5);
         let view = state.view("run", "PointMaze-v0", 1.0, 50_000);
-        assert_eq!(view.sim_worker_restarts, 13);
+        assert_eq!(view.run.sim_worker_restarts, 13);
         let rows: Vec<(u32, u64)> = view
             .actors
             .iter()
@@ -659,8 +659,8 @@ mod tests {
         assert_eq!((state.stats.env_steps, state.stats.episodes), (0, 0));
         assert_eq!(state.stats.actors[&1].episodes, 0);
         let view = state.view("run", "PointMaze-v0", 2.0, 50_000);
-        assert_eq!(view.failed_resets, 1);
-        let d = &view.demos[0].difficulty;
+        assert_eq!(view.run.failed_resets, 1);
+        let d = &view.run.demos[0].difficulty;
         assert_eq!(d.failed_resets, 1);
         assert_eq!(
             d.last_reset_failure,
@@ -729,8 +729,8 @@ mod tests {
         let view = state.view("run", "PointMaze-v0", 2.0, 50_000);
         assert_eq!(
             (
-                view.refused_reports.over_time_limit,
-                view.refused_reports.not_holder
+                view.run.refused_reports.over_time_limit,
+                view.run.refused_reports.not_holder
             ),
             (2, 1)
         );

@@ -6,7 +6,7 @@ use rfcl_core::maze::Cell;
 
 use crate::dashboard::{
     ActorRow, DashboardView, DemoBar, DemoDifficulty, EvalPoint, LevelRow, MazeCell, MazeSnapshot,
-    MazeView, RefusedReports,
+    MazeView, RefusedReports, RunState,
 };
 use crate::state::{DemoResets, EvalAggregate, ServerState};
 use crate::{LevelSource, Stage};
@@ -185,28 +185,33 @@ impl ServerState {
             .collect();
         let r = self.leases.refusals;
         DashboardView {
-            run_name: run_name.to_string(),
-            env_id: env_id.to_string(),
-            stage: status.number(),
-            finished: status.finished(),
-            stage_epoch: status.epoch,
-            env_steps: self.stats.env_steps,
-            stage_1_env_steps: status.stage_1_end_env_steps,
-            episodes: self.stats.episodes,
+            run: RunState {
+                run_name: run_name.to_string(),
+                env_id: env_id.to_string(),
+                stage: status.number(),
+                finished: status.finished(),
+                stage_epoch: status.epoch,
+                env_steps: self.stats.env_steps,
+                stage_1_env_steps: status.stage_1_end_env_steps,
+                episodes: self.stats.episodes,
+                expired_leases: self.leases.expired_total,
+                sim_worker_restarts: self.stats.sim_worker_restarts(),
+                failed_resets: self.stats.failed_resets.total(),
+                refused_reports: RefusedReports {
+                    duplicate: r.duplicate,
+                    expired: r.expired,
+                    unknown: r.unknown,
+                    epoch_mismatch: r.epoch_mismatch,
+                    malformed: self.stats.malformed_reports,
+                    not_holder: r.not_holder,
+                    over_time_limit: r.over_time_limit,
+                },
+                train_success_rate: self.stats.history.last().map(|p| p.train_success_rate),
+                demos,
+                evals,
+            },
             episodes_per_s: self.stats.episodes_per_s,
             open_leases: self.leases.open_count() as u64,
-            expired_leases: self.leases.expired_total,
-            sim_worker_restarts: self.stats.sim_worker_restarts(),
-            failed_resets: self.stats.failed_resets.total(),
-            refused_reports: RefusedReports {
-                duplicate: r.duplicate,
-                expired: r.expired,
-                unknown: r.unknown,
-                epoch_mismatch: r.epoch_mismatch,
-                malformed: self.stats.malformed_reports,
-                not_holder: r.not_holder,
-                over_time_limit: r.over_time_limit,
-            },
             actors_forgotten: self.stats.actors_forgotten,
             // Known only to the snapshot writer: `Shared::view` fills it in.
             snapshot_failures: 0,
@@ -215,10 +220,8 @@ impl ServerState {
             dashboard_refused: 0,
             oversized_requests: 0,
             solved_frac: reverse.solved_frac(),
-            demos,
             levels,
             actors,
-            evals,
             history: self.stats.history.clone(),
             maze: None,
             // Known only to the service: `Shared::view` fills it in.

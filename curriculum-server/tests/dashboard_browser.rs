@@ -80,7 +80,7 @@ async fn chromium_renders_the_demo_bars() {
     let get = |path: &str| server.dashboard_get(path);
     let view: rfcl_curriculum::dashboard::DashboardView =
         serde_json::from_str(&get("api/state")).unwrap();
-    assert_eq!((view.episodes, view.sim_worker_restarts), (30, 1));
+    assert_eq!((view.run.episodes, view.run.sim_worker_restarts), (30, 1));
     let metrics = get("metrics");
     assert!(
         metrics.contains("rfcl_curriculum_episodes_total 30"),

@@ -11,6 +11,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rfcl_core::demo::DemoSet;
 use rfcl_core::lease::{AcquireRequest, ResetLease};
+use rfcl_core::run_state::RunState;
 use rfcl_curriculum::dashboard::DashboardView;
 use rfcl_curriculum::snapshot;
 use rfcl_curriculum::state::{DemoResets, ServerState};
@@ -72,22 +73,19 @@ async fn applied(
         .applied
 }
 
+/// The run's state as other processes read it (GetState).
 async fn state_view(
     client: &mut v1::curriculum_client::CurriculumClient<rfcl_proto::auth::AuthChannel>,
-) -> DashboardView {
-    let json = client
-        .get_state(v1::GetStateRequest {})
-        .await
-        .unwrap()
-        .into_inner()
-        .json;
-    serde_json::from_str(&json).unwrap()
+) -> RunState {
+    let reply = client.get_state(v1::GetStateRequest {}).await.unwrap();
+    rfcl_proto::convert::run_state(reply.get_ref()).unwrap()
 }
 
 /// The parts of the view that are curriculum state (not wall-clock dependent).
-fn curriculum_part(v: &DashboardView) -> serde_json::Value {
+fn curriculum_part(view: &DashboardView) -> serde_json::Value {
     // A demo's episode id and maze cell come from the demo file, which the running server adds to
     // its view and a snapshot does not hold: they are not curriculum state.
+    let v = &view.run;
     let mut demos = v.demos.clone();
     for d in &mut demos {
         d.episode_id = 0;
@@ -95,7 +93,7 @@ fn curriculum_part(v: &DashboardView) -> serde_json::Value {
     }
     serde_json::json!({
         "stage": v.stage, "epoch": v.stage_epoch, "env_steps": v.env_steps, "episodes": v.episodes,
-        "demos": demos, "levels": v.levels, "stage_1_env_steps": v.stage_1_env_steps,
+        "demos": demos, "levels": view.levels, "stage_1_env_steps": v.stage_1_env_steps,
     })
 }
 
@@ -109,6 +107,8 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     let initial = state_view(&mut client).await;
     assert_eq!(initial.stage, 1);
     assert_eq!(initial.demos.len(), 3);
+    // The dashboard's view embeds the same run state.
+    assert_eq!(server.view().run, initial);
     // S_i = 21 states (no truncation: 5 success steps), t_i starts at S_i - 1.
     assert!(initial
         .demos
@@ -152,7 +152,7 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     assert!(before_kill.demos.iter().all(|d| d.solved && d.t == 0));
     assert!(before_kill.stage_1_env_steps.unwrap() > 0);
     assert_eq!(
-        before_kill.levels.len(),
+        server.view().levels.len(),
         10 + 3,
         "10 seeds + 3 demo starts (deviation 3)"
     );
@@ -167,7 +167,7 @@ async fn stage_1_to_stage_2_then_sigkill_and_resume_continues_from_the_snapshot(
     // Started as before, it finds its snapshot in its run directory and continues from it.
     let mut restarted = ServerProcess::start(&files.args("--run-dir", &[]));
     let mut client = restarted.client().await;
-    let resumed = state_view(&mut client).await;
+    let resumed = restarted.view();
     let snap_view = snap.view(
         "ctest",
         "PointMaze-v0",
@@ -216,7 +216,7 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     let server = ServerProcess::start_fresh(dir.path(), 30.0);
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
-    let before = curriculum_part(&state_view(&mut client).await);
+    let before = curriculum_part(&server.view());
 
     let mut malformed = report_for(&lease, true, 1.0);
     malformed.lease_id = 0;
@@ -255,17 +255,17 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     );
 
     assert_eq!(
-        curriculum_part(&state_view(&mut client).await),
+        curriculum_part(&server.view()),
         before,
         "refused reports changed the curriculum"
     );
 
     // The real report applies once; its repeat is acknowledged and changes nothing.
     assert!(applied(&mut client, &lease, true, 1.0).await);
-    let after_one = curriculum_part(&state_view(&mut client).await);
+    let after_one = curriculum_part(&server.view());
     assert_ne!(after_one, before);
     assert!(!applied(&mut client, &lease, true, 1.0).await);
-    assert_eq!(curriculum_part(&state_view(&mut client).await), after_one);
+    assert_eq!(curriculum_part(&server.view()), after_one);
 
     // ReportAndAcquire: the report applies once and the next lease comes back in the same reply.
     let lease2 = client.acquire(acquire_req(0)).await.unwrap().into_inner();
@@ -288,14 +288,14 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     // Refused: the call fails with Report's status and hands out no lease.
     let mut unknown = report_for(&lease3, true, 1.0);
     unknown.lease_id = 888_888;
-    let open_before = state_view(&mut client).await.open_leases;
+    let open_before = server.view().open_leases;
     let refused = v1::ReportAndAcquireRequest {
         report: Some(unknown),
         next: Some(acquire_req(0)),
     };
     let status = client.report_and_acquire(refused).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::NotFound);
-    assert_eq!(state_view(&mut client).await.open_leases, open_before);
+    assert_eq!(server.view().open_leases, open_before);
     let empty = v1::ReportAndAcquireRequest {
         report: None,
         next: None,
@@ -303,12 +303,13 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     let status = client.report_and_acquire(empty).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::InvalidArgument);
 
-    let view = state_view(&mut client).await;
-    let r = view.refused_reports;
+    let view = server.view();
+    let r = view.run.refused_reports;
     assert_eq!(
         (r.malformed, r.unknown, r.epoch_mismatch, r.duplicate),
         (3, 2, 1, 2)
     );
+    assert_eq!(state_view(&mut client).await.refused_reports, r);
     assert_eq!(
         view.actors.len(),
         1,
@@ -323,7 +324,7 @@ async fn unreported_leases_expire_and_are_counted() {
     let server = ServerProcess::start_fresh(dir.path(), 0.3);
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(1)).await.unwrap().into_inner();
-    let before = curriculum_part(&state_view(&mut client).await);
+    let before = curriculum_part(&server.view());
     let mut view = state_view(&mut client).await;
     for _ in 0..50 {
         if view.expired_leases == 1 {
@@ -333,14 +334,14 @@ async fn unreported_leases_expire_and_are_counted() {
         view = state_view(&mut client).await;
     }
     assert_eq!(view.expired_leases, 1);
-    assert_eq!(view.open_leases, 0);
+    assert_eq!(server.view().open_leases, 0);
     let status = client
         .report(report_for(&lease, true, 1.0))
         .await
         .unwrap_err();
     assert_eq!(status.code(), tonic::Code::FailedPrecondition);
     assert!(status.message().contains("expired"), "{}", status.message());
-    assert_eq!(curriculum_part(&state_view(&mut client).await), before);
+    assert_eq!(curriculum_part(&server.view()), before);
 }
 
 #[test]
@@ -395,7 +396,7 @@ async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
     let server = ServerProcess::start_fresh(dir.path(), 30.0);
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
-    let before = curriculum_part(&state_view(&mut client).await);
+    let before = curriculum_part(&server.view());
 
     let mut bare = CurriculumClient::new(server.channel().await);
     let wrong = Token::parse("not-the-run-token-0123", "a test").unwrap();
@@ -422,7 +423,7 @@ async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
             status.message()
         );
     }
-    let after = state_view(&mut client).await;
+    let after = server.view();
     assert_eq!(
         curriculum_part(&after),
         before,
@@ -654,7 +655,7 @@ async fn reports_beyond_their_lease_are_refused_counted_and_leave_it_open() {
     let server = ServerProcess::start_fresh(dir.path(), 30.0);
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
-    let before = curriculum_part(&state_view(&mut client).await);
+    let before = curriculum_part(&server.view());
 
     let too_long = v1::EpisodeReport {
         length: u32::MAX,
@@ -693,17 +694,17 @@ async fn reports_beyond_their_lease_are_refused_counted_and_leave_it_open() {
         status.message()
     );
 
-    let view = state_view(&mut client).await;
+    let view = server.view();
     assert_eq!(
         curriculum_part(&view),
         before,
         "refused reports changed the curriculum"
     );
-    assert_eq!(view.env_steps, 0);
+    assert_eq!(view.run.env_steps, 0);
     assert_eq!(
         (
-            view.refused_reports.over_time_limit,
-            view.refused_reports.not_holder
+            view.run.refused_reports.over_time_limit,
+            view.run.refused_reports.not_holder
         ),
         (2, 1)
     );
@@ -782,10 +783,13 @@ async fn an_oversized_request_is_refused_and_the_server_keeps_serving() {
     let mut client = server.client().await;
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
     assert!(applied(&mut client, &lease, true, 1.0).await);
-    let view = state_view(&mut client).await;
-    assert_eq!(view.episodes, 1);
+    assert_eq!(state_view(&mut client).await.episodes, 1);
     // Refused before any handler ran, and still counted and shown.
-    assert_eq!(view.oversized_requests, 1, "the small call is not counted");
+    assert_eq!(
+        server.view().oversized_requests,
+        1,
+        "the small call is not counted"
+    );
     let metrics = server.dashboard_get("metrics");
     assert!(
         metrics.contains("rfcl_curriculum_oversized_requests_total 1"),
@@ -921,14 +925,8 @@ async fn a_flood_of_idle_dashboard_connections_cannot_starve_training() {
         .unwrap()
         .into_inner();
     assert!(applied(&mut client, &lease, true, 1.0).await);
-    // The dashboard kept its bound and closed the others, counting each.
-    let view = state_view(&mut client).await;
-    let refused = view.dashboard_refused as usize;
-    assert!(
-        refused + MAX_CONNECTIONS >= FLOOD && refused < FLOOD,
-        "{refused} of {FLOOD} refused with a bound of {MAX_CONNECTIONS}"
-    );
-    // Once the flood goes, the dashboard serves again, and /metrics shows the count.
+    // Once the flood goes, the dashboard serves again, and /metrics shows how many connections
+    // it closed at once to keep its bound.
     drop(flood);
     let mut metrics = String::new();
     for _ in 0..50 {
@@ -942,8 +940,15 @@ async fn a_flood_of_idle_dashboard_connections_cannot_starve_training() {
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
+    let refused: usize = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("rfcl_curriculum_dashboard_connections_refused_total "))
+        .unwrap_or_else(|| panic!("no refused-connections count in {metrics}"))
+        .trim()
+        .parse()
+        .unwrap();
     assert!(
-        metrics.contains("rfcl_curriculum_dashboard_connections_refused_total"),
-        "{metrics}"
+        refused + MAX_CONNECTIONS >= FLOOD && refused < FLOOD,
+        "{refused} of {FLOOD} refused with a bound of {MAX_CONNECTIONS}"
     );
 }

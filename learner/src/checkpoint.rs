@@ -50,9 +50,6 @@ const FORMAT_V2: &str = "rfcl-learner-checkpoint-v2";
 pub const MANIFEST: &str = "learner.json";
 /// The generation before [`MANIFEST`]'s, kept as the fallback.
 pub const PREVIOUS: &str = "learner.prev.json";
-/// The manifest's own checksum field as written before its value is known (same length as any).
-const CHECKSUM_FIELD: &str = "\"checksum\": \"";
-const CHECKSUM_ZERO: &str = "00000000";
 
 /// Causes are sources, never repeated in the message: `{:#}` (anyhow) and
 /// [`crate::error::chain`] print each once.
@@ -249,17 +246,10 @@ fn read_one(dir: &Path, name: &str) -> Result<Option<Manifest>> {
         })?;
     match manifest.format.as_str() {
         FORMAT => {
-            let written = manifest.checksum.as_deref().unwrap_or_default();
-            let computed = format!("{:08x}", manifest_crc(&text));
-            if written != computed {
-                return Err(CheckpointError::Corrupt {
-                    path,
-                    problem: format!(
-                        "its checksum is {computed}, it says {written:?}: the file was changed \
-                         after it was written"
-                    ),
-                });
-            }
+            rfcl_core::checksum::verify(text.as_bytes()).map_err(|e| CheckpointError::Corrupt {
+                path: path.clone(),
+                problem: e.to_string(),
+            })?;
         }
         FORMAT_V2 => {}
         _ => {
@@ -272,31 +262,12 @@ fn read_one(dir: &Path, name: &str) -> Result<Option<Manifest>> {
     Ok(Some(manifest))
 }
 
-/// CRC-32C of a manifest's text with its checksum's value read as `00000000`. (A quote inside a
-/// JSON string is escaped, so the field's pattern occurs only as the field itself.)
-fn manifest_crc(text: &str) -> u32 {
-    match text.rfind(CHECKSUM_FIELD) {
-        Some(at) if text.len() >= at + CHECKSUM_FIELD.len() + CHECKSUM_ZERO.len() => {
-            let value = at + CHECKSUM_FIELD.len();
-            let mut bytes = text.as_bytes().to_vec();
-            bytes[value..value + CHECKSUM_ZERO.len()].copy_from_slice(CHECKSUM_ZERO.as_bytes());
-            crc32c::crc32c(&bytes)
-        }
-        _ => crc32c::crc32c(text.as_bytes()),
-    }
-}
-
 /// The manifest as written: pretty JSON whose `checksum` is the CRC-32C of these bytes with the
 /// value zeroed.
 fn manifest_bytes(manifest: &Manifest) -> Vec<u8> {
     let mut manifest = manifest.clone();
-    manifest.checksum = Some(CHECKSUM_ZERO.into());
-    let text = serde_json::to_string_pretty(&manifest).expect("a manifest serialises");
-    let crc = format!("{:08x}", manifest_crc(&text));
-    let at = text.rfind(CHECKSUM_FIELD).expect("the checksum field") + CHECKSUM_FIELD.len();
-    let mut bytes = text.into_bytes();
-    bytes[at..at + CHECKSUM_ZERO.len()].copy_from_slice(crc.as_bytes());
-    bytes
+    manifest.checksum = Some(rfcl_core::checksum::UNSEALED.into());
+    rfcl_core::checksum::seal(serde_json::to_vec_pretty(&manifest).expect("a manifest serialises"))
 }
 
 /// Every data file `manifest` names is there with its size, and (with `contents`) its CRC-32C.

@@ -291,7 +291,10 @@ async fn run(args: Args) -> Result<()> {
     )
     .with_transition_batch(cfg.service.transition_batch);
 
-    let metrics_field = match metrics_listener {
+    // Every task here serves until the stop: one that ends or fails earlier stops the learner
+    // (after its final checkpoint) with an error naming it.
+    let mut tasks = rfcl_runtime::tasks::Tasks::default();
+    let metrics_url = match metrics_listener {
         Some((listener, at)) => {
             let mut stopped = stopping_rx.clone();
             let metrics = trainer.metrics();
@@ -299,17 +302,23 @@ async fn run(args: Args) -> Result<()> {
             metrics.add_collector(std::sync::Arc::new(rfcl_learner::prom::Unauthenticated(
                 server_auth.guard.clone(),
             )));
-            tokio::spawn(rfcl_learner::prom::serve(listener, metrics, async move {
+            let serve = rfcl_learner::prom::serve(listener, metrics, async move {
                 let _ = stopped.wait_for(|s| *s).await;
-            }));
+            });
+            tasks.spawn("metrics server", async move {
+                serve.await.context("serving /metrics")
+            });
             let url = rfcl_learner::prom::describe(at);
             tracing::info!("Prometheus metrics at {url}");
-            format!(" metrics={url}")
+            Some(url)
         }
-        None => String::new(),
+        None => None,
     };
     // The one machine-readable line on stdout: `rfcl train` and tests read the address from it.
-    println!("learner ready grpc={addr}{metrics_field}");
+    let grpc = addr.to_string();
+    let mut ready = vec![("grpc", grpc.as_str())];
+    ready.extend(metrics_url.as_deref().map(|url| ("metrics", url)));
+    println!("{}", rfcl_core::ready::ReadyLine::new("learner", &ready));
 
     // The first subscription was made before this learner could serve; subscribe again with its
     // address so that the curriculum server's dashboard polls its Health. The new stream's first
@@ -340,14 +349,21 @@ async fn run(args: Args) -> Result<()> {
             stage_stream
         }
     };
-    tokio::spawn(stages::follow(
+    let follow = stages::follow(
         args.curriculum.clone(),
         client_auth,
         advertise,
         stage_stream,
         stage_tx,
         stopping_rx.clone(),
-    ));
+    );
+    let mut stopped = stopping_rx.clone();
+    tasks.spawn("stage subscription", async move {
+        follow.await;
+        // It also ends when the training thread, its receiver, is done: wait for the stop then.
+        let _ = stopped.wait_for(|s| *s).await;
+        Ok(())
+    });
     let inputs = TrainerInputs {
         data: data_rx,
         stages: stage_rx,
@@ -362,12 +378,23 @@ async fn run(args: Args) -> Result<()> {
         })
         .context("starting the training thread")?;
     let mut stopped = stopping_rx.clone();
-    let server = tokio::spawn(service::serve(listener, service, server_auth, async move {
+    let serve = service::serve(listener, service, server_auth, async move {
         let _ = stopped.wait_for(|s| *s).await;
-    }));
+    });
+    tasks.spawn(
+        "gRPC server",
+        async move { serve.await.context("gRPC server") },
+    );
 
+    let mut failed = None;
     let outcome = tokio::select! {
         done = &mut done_rx => done,
+        e = tasks.first_end() => {
+            tracing::error!("{e:#}: finishing (final checkpoint)");
+            failed = Some(e);
+            let _ = shutdown_tx.send(true);
+            (&mut done_rx).await
+        }
         _ = signals.recv() => {
             tracing::info!("signal received: finishing (final checkpoint); signal again to abort");
             let _ = shutdown_tx.send(true);
@@ -405,11 +432,11 @@ async fn run(args: Args) -> Result<()> {
             tracing::warn!("writing {}: {e}", path.display());
         }
     }
-    match tokio::time::timeout(Duration::from_secs(5), server).await {
-        Ok(Ok(Ok(()))) => {}
-        Ok(Ok(Err(e))) => tracing::warn!("gRPC server: {e}"),
-        Ok(Err(e)) => tracing::warn!("gRPC server task: {e}"),
-        Err(_) => tracing::warn!("gRPC server did not stop within 5 s"),
+    if let Err(e) = tasks.finish(Duration::from_secs(5)).await {
+        tracing::warn!("stopping: {e:#}");
+    }
+    if let Some(e) = failed {
+        return Err(e);
     }
     match outcome {
         Ok(Ok(reason)) => {

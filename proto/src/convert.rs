@@ -3,6 +3,7 @@
 use rfcl_core::lease::{
     AcquireRequest, EpisodeReport, LeaseKind, ResetArgs, ResetLease, MAX_RESET_FAILURE_BYTES,
 };
+use rfcl_core::run_state::RunState;
 use rfcl_core::video::{EvalVideo, VideoMeta, MAX_EVAL_VIDEO_BYTES, MAX_VIDEO_RETURN};
 
 use crate::v1;
@@ -330,6 +331,17 @@ pub fn learner_addr(request: &v1::WatchStageRequest) -> Result<Option<String>, W
     Ok(Some(raw.to_string()))
 }
 
+/// `CurriculumState` as the domain value: its `json` holds the run's state.
+pub fn run_state(wire: &v1::CurriculumState) -> Result<RunState, WireError> {
+    serde_json::from_str(&wire.json).map_err(|e| {
+        WireError::new(
+            "CurriculumState",
+            "json",
+            format!("expected the run's state (stage, counts, demos, evals) as JSON: {e}"),
+        )
+    })
+}
+
 /// An `EvalVideo` as the domain value: a GIF (its magic first) of at most
 /// [`MAX_EVAL_VIDEO_BYTES`], with a finite return within ±[`MAX_VIDEO_RETURN`].
 pub fn eval_video(wire: v1::EvalVideo) -> Result<EvalVideo, WireError> {
@@ -406,6 +418,29 @@ pub fn report_and_acquire(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_curriculum_state_carries_the_run_state_and_anything_else_is_named() {
+        let run = RunState {
+            run_name: "r".into(),
+            stage: 2,
+            env_steps: 1234,
+            train_success_rate: Some(0.5),
+            ..Default::default()
+        };
+        let wire = v1::CurriculumState {
+            json: serde_json::to_string(&run).unwrap(),
+            ..Default::default()
+        };
+        assert_eq!(run_state(&wire), Ok(run));
+        let e = run_state(&v1::CurriculumState {
+            json: "{\"stage\": \"two\"}".into(),
+            ..Default::default()
+        })
+        .unwrap_err();
+        assert_eq!((e.message, e.field), ("CurriculumState", "json"));
+        assert!(e.problem.starts_with("expected the run's state"), "{e}");
+    }
 
     fn lease() -> ResetLease {
         let options = serde_json::json!({"goal": [1.0, 2.0]});

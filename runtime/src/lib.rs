@@ -14,10 +14,13 @@
 //! }
 //! ```
 //!
+//! [`tasks`]: a service's named tasks under one supervisor.
+//!
 //! Depends on no workspace crate (tests/crate_graph.rs).
 #![forbid(unsafe_code)]
 
 pub mod isolated;
+pub mod tasks;
 
 use std::future::Future;
 use std::process::ExitCode;

@@ -28,7 +28,7 @@ pub struct E2eResult {
 pub fn run(config: &Path, actors: &[u32], seconds: f64) -> Result<Vec<E2eResult>> {
     let dir = tempfile::tempdir()?;
     let demos = dir.path().join("demos.h5");
-    crate::generate_demos("pointmaze", 5, &demos, 0)?;
+    crate::demos::generate("pointmaze", 5, &demos, 0)?;
     let exe = std::env::current_exe()?;
     let mut results = Vec::new();
     for &k in actors {

@@ -1,12 +1,16 @@
 //! `rfcl bench faults`: fault injection. Seeded whole `rfcl train` runs on a PointMaze config, each
-//! SIGKILLing one kind of process (a train actor, an eval actor, the learner, the curriculum
+//! disturbing one kind of process (a train actor, an eval actor, the learner, the curriculum
 //! server) at a random moment, some twice, against an undisturbed run; every run should reach its
 //! bar with every loss accounted for in its summary (restarts and what each rolled back, respawns,
 //! expired leases, refused reports, transitions lost between shared-memory frames).
 //!
-//! Run 0 is undisturbed; run i > 0 kills [`KINDS`]`[(i - 1) % 4]`, twice when `i % 3 == 0`, at
-//! times drawn from `seed + i` between [`KILL_FROM_S`] and [`KILL_UNTIL_S`] after the session's
-//! processes are up. The runs' logs and run directories stay in `--out`.
+//! A [`Fault`] is a SIGKILL, a hang (SIGSTOP, SIGCONT [`HANG_S`] later, longer than the launcher's
+//! `service.hang_timeout_s`) or a damaged checkpoint (one bit flipped in the learner's newest
+//! networks file or the curriculum snapshot, then a SIGKILL, so that the restarted process reads
+//! it). Run 0 is undisturbed; run i > 0 applies the (fault, kind) pair `(i - 1) % pairs` of the
+//! faults asked for, each with the kinds it applies to, twice when `i % 3 == 0`, at times drawn
+//! from `seed + i` between [`FAULT_FROM_S`] and [`FAULT_UNTIL_S`] after the session's processes
+//! are up. The runs' logs and run directories stay in `--out`.
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -14,23 +18,60 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rustix::process::Signal;
 use serde::Serialize;
 use serde_json::Value;
 
-/// What a run kills: the child's name prefix in `processes.json`.
+/// What a run disturbs: the child's name prefix in `processes.json`.
 pub const KINDS: [&str; 4] = ["actor-", "eval-actor-", "learner", "curriculum-server"];
-/// Kill moments, seconds after `processes.json` appears (a PointMaze test run takes 2-4 min).
-pub const KILL_FROM_S: f64 = 10.0;
-pub const KILL_UNTIL_S: f64 = 90.0;
+/// The processes that own a checkpoint.
+const OWNERS: [&str; 2] = ["learner", "curriculum-server"];
+/// Fault moments, seconds after `processes.json` appears (a PointMaze test run takes 2-4 min).
+pub const FAULT_FROM_S: f64 = 10.0;
+pub const FAULT_UNTIL_S: f64 = 90.0;
+/// How long a hung process stays stopped: past the default `service.hang_timeout_s` (60 s), so a
+/// hung service is restarted by the launcher, and past the actors' 30 s call deadline.
+pub const HANG_S: f64 = 75.0;
+
+/// What a disturbed run does to its process.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Fault {
+    /// SIGKILL.
+    Kill,
+    /// SIGSTOP, then SIGCONT [`HANG_S`] later (if it still lives).
+    Hang,
+    /// One bit of its newest checkpoint flipped, then SIGKILL (learner, curriculum server).
+    Corrupt,
+}
+
+impl Fault {
+    fn kinds(self) -> &'static [&'static str] {
+        match self {
+            Fault::Kill | Fault::Hang => &KINDS,
+            Fault::Corrupt => &OWNERS,
+        }
+    }
+}
+
+/// Every (fault, kind) pair of `faults`, in the order the disturbed runs take them.
+fn plan(faults: &[Fault]) -> Vec<(Fault, &'static str)> {
+    faults
+        .iter()
+        .flat_map(|&f| f.kinds().iter().map(move |&k| (f, k)))
+        .collect()
+}
 /// Longest a disturbed run may take.
 const RUN_LIMIT: Duration = Duration::from_secs(1800);
 
 #[derive(Debug, Clone, Serialize)]
 pub struct FaultRun {
     pub run: u32,
-    /// What was killed ("none" for the undisturbed run) and when (s after start-up).
-    pub killed: String,
-    pub kill_times_s: Vec<f64>,
+    /// What was done ("none" for the undisturbed run), to which process, and when (s after
+    /// start-up).
+    pub fault: String,
+    pub target: String,
+    pub fault_times_s: Vec<f64>,
     pub ending: String,
     pub reached_bar: bool,
     /// Env steps and run wall time to 90 % eval success.
@@ -50,33 +91,47 @@ pub struct FaultRun {
 }
 
 /// `runs` runs (the first undisturbed) of `config` with 5 generated demos, into `out`.
-pub fn run(config: &Path, runs: u32, seed: u64, bar: f64, out: &Path) -> Result<Vec<FaultRun>> {
+pub fn run(
+    config: &Path,
+    runs: u32,
+    faults: &[Fault],
+    seed: u64,
+    bar: f64,
+    out: &Path,
+) -> Result<Vec<FaultRun>> {
+    let plan = plan(faults);
+    if plan.is_empty() {
+        bail!("--faults: name at least one of kill, hang, corrupt");
+    }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let demos = out.join("demos.h5");
     if !demos.exists() {
-        crate::generate_demos("pointmaze", 5, &demos, 0)?;
+        crate::demos::generate("pointmaze", 5, &demos, 0)?;
     }
     let mut results = Vec::new();
     for i in 0..runs {
         let mut rng = ChaCha8Rng::seed_from_u64(seed + u64::from(i));
-        let (kind, kills) = match i {
-            0 => ("none", 0),
+        let (fault, count) = match i {
+            0 => (None, 0),
             _ => (
-                KINDS[(i as usize - 1) % KINDS.len()],
+                Some(plan[(i as usize - 1) % plan.len()]),
                 if i % 3 == 0 { 2 } else { 1 },
             ),
         };
-        let mut times: Vec<f64> = (0..kills)
-            .map(|_| rng.random_range(KILL_FROM_S..KILL_UNTIL_S))
+        let mut times: Vec<f64> = (0..count)
+            .map(|_| rng.random_range(FAULT_FROM_S..FAULT_UNTIL_S))
             .collect();
         times.sort_by(f64::total_cmp);
         let started = Instant::now();
-        eprintln!(
-            "faults: run {}/{runs}: kill {} x{kills} at {times:.0?} s",
-            i + 1,
-            kind.trim_end_matches('-')
-        );
-        let result = one_run(config, &demos, out, i, kind, &times, bar)?;
+        if let Some((fault, kind)) = fault {
+            eprintln!(
+                "faults: run {}/{runs}: {fault:?} {} x{count} at {times:.0?} s",
+                i + 1,
+                kind.trim_end_matches('-')
+            );
+        }
+        let disturbance = fault.map(|(fault, kind)| Disturbance { fault, kind, times });
+        let result = one_run(config, &demos, out, i, disturbance, &mut rng, bar)?;
         eprintln!(
             "faults: run {}/{runs} {} ({}) in {:.0} s",
             i + 1,
@@ -93,13 +148,20 @@ pub fn run(config: &Path, runs: u32, seed: u64, bar: f64, out: &Path) -> Result<
     Ok(results)
 }
 
+/// What one run does, to which kind of process, at which moments (s after start-up).
+struct Disturbance {
+    fault: Fault,
+    kind: &'static str,
+    times: Vec<f64>,
+}
+
 fn one_run(
     config: &Path,
     demos: &Path,
     out: &Path,
     index: u32,
-    kind: &str,
-    times: &[f64],
+    disturbance: Option<Disturbance>,
+    rng: &mut ChaCha8Rng,
     bar: f64,
 ) -> Result<FaultRun> {
     let run_dir = out.join(format!("run-{index:02}"));
@@ -128,8 +190,10 @@ fn one_run(
         std::thread::sleep(Duration::from_millis(200));
     }
     let up = Instant::now();
+    let times = disturbance.as_ref().map_or(&[][..], |d| &d.times[..]);
     let mut pending = times.iter();
     let mut next = pending.next();
+    let mut stopped: Vec<(i32, Instant)> = Vec::new();
     let status = loop {
         if let Some(status) = child.try_wait()? {
             break status;
@@ -141,12 +205,32 @@ fn one_run(
                 log_path.display()
             );
         }
-        if let Some(&at) = next {
+        if let (Some(&at), Some(d)) = (next, &disturbance) {
             if up.elapsed().as_secs_f64() >= at {
-                kill_one(&processes, kind)?;
+                let (name, pid) = find(&processes, d.kind)?;
+                match d.fault {
+                    Fault::Kill => signal(&name, pid, Signal::KILL),
+                    Fault::Hang => {
+                        signal(&name, pid, Signal::STOP);
+                        stopped.push((pid, Instant::now()));
+                    }
+                    Fault::Corrupt => {
+                        let file = damage(&run_dir, d.kind, rng)?;
+                        eprintln!("faults:   flipped a bit of {}", file.display());
+                        signal(&name, pid, Signal::KILL);
+                    }
+                }
                 next = pending.next();
             }
         }
+        stopped.retain(|&(pid, since)| {
+            let over = since.elapsed().as_secs_f64() >= HANG_S;
+            if over {
+                // A service the launcher restarted meanwhile is gone: ESRCH, nothing to do.
+                signal("the hung process", pid, Signal::CONT);
+            }
+            !over
+        });
         std::thread::sleep(Duration::from_millis(200));
     };
     let summary_path = run_dir.join("summary.json");
@@ -180,8 +264,13 @@ fn one_run(
     let ending = summary["ending"].as_str().unwrap_or("unknown").to_owned();
     Ok(FaultRun {
         run: index,
-        killed: kind.trim_end_matches('-').to_owned(),
-        kill_times_s: times.to_vec(),
+        fault: disturbance
+            .as_ref()
+            .map_or("none".into(), |d| format!("{:?}", d.fault).to_lowercase()),
+        target: disturbance
+            .as_ref()
+            .map_or("-".into(), |d| d.kind.trim_end_matches('-').to_owned()),
+        fault_times_s: times.to_vec(),
         reached_bar: ending == "eval_success",
         ending,
         env_steps_to_bar: to_bar["env_steps"].as_u64(),
@@ -200,35 +289,67 @@ fn one_run(
     })
 }
 
-/// SIGKILLs the first running child whose name starts with `prefix`.
-fn kill_one(processes: &Path, prefix: &str) -> Result<()> {
+/// The name and pid of the first running child whose name starts with `prefix`.
+fn find(processes: &Path, prefix: &str) -> Result<(String, i32)> {
     let doc: Value = serde_json::from_str(&std::fs::read_to_string(processes)?)
         .with_context(|| format!("parsing {}", processes.display()))?;
-    let victim = doc["children"]
+    doc["children"]
         .as_array()
         .into_iter()
         .flatten()
         .find(|c| c["name"].as_str().is_some_and(|n| n.starts_with(prefix)))
-        .and_then(|c| Some((c["name"].as_str()?.to_owned(), c["pid"].as_i64()?)))
-        .with_context(|| format!("no {prefix}* in {}", processes.display()))?;
-    eprintln!("faults:   SIGKILL {} (pid {})", victim.0, victim.1);
-    if let Some(pid) = rustix::process::Pid::from_raw(victim.1 as i32) {
-        let _ = rustix::process::kill_process(pid, rustix::process::Signal::KILL);
+        .and_then(|c| Some((c["name"].as_str()?.to_owned(), c["pid"].as_i64()? as i32)))
+        .with_context(|| format!("no {prefix}* in {}", processes.display()))
+}
+
+fn signal(name: &str, pid: i32, signal: Signal) {
+    eprintln!("faults:   {signal:?} {name} (pid {pid})");
+    if let Some(pid) = rustix::process::Pid::from_raw(pid) {
+        let _ = rustix::process::kill_process(pid, signal);
     }
-    Ok(())
+}
+
+/// Flips one random bit of `kind`'s newest checkpoint file in `run_dir`: the learner's networks
+/// file (named by its manifest) or the curriculum snapshot. Returns the file.
+fn damage(run_dir: &Path, kind: &str, rng: &mut ChaCha8Rng) -> Result<PathBuf> {
+    let file = if kind == "learner" {
+        let dir = run_dir.join("checkpoint");
+        let manifest = dir.join("learner.json");
+        let doc: Value = serde_json::from_str(
+            &std::fs::read_to_string(&manifest)
+                .with_context(|| format!("reading {}", manifest.display()))?,
+        )
+        .with_context(|| format!("parsing {}", manifest.display()))?;
+        dir.join(
+            doc["networks_file"]
+                .as_str()
+                .with_context(|| format!("no networks_file in {}", manifest.display()))?,
+        )
+    } else {
+        run_dir.join("curriculum.snapshot.json")
+    };
+    let mut bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+    if bytes.is_empty() {
+        bail!("{} is empty", file.display());
+    }
+    let at = rng.random_range(0..bytes.len());
+    bytes[at] ^= 1 << rng.random_range(0..8);
+    std::fs::write(&file, bytes).with_context(|| format!("writing {}", file.display()))?;
+    Ok(file)
 }
 
 /// The results as a Markdown table (for benches/RESULTS.md).
 pub fn table(results: &[FaultRun]) -> String {
     let mut s = String::from(
-        "| run | killed | at (s) | ending | env steps to 90 % | wall s to 90 % | service restarts | rolled back env steps / reports | actor respawns | expired leases | refused reports (duplicates) | shm records lost | refused batches |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| run | fault | process | at (s) | ending | env steps to 90 % | wall s to 90 % | service restarts | rolled back env steps / reports | actor respawns | expired leases | refused reports (duplicates) | shm records lost | refused batches |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in results {
-        let times: Vec<String> = r.kill_times_s.iter().map(|t| format!("{t:.0}")).collect();
+        let times: Vec<String> = r.fault_times_s.iter().map(|t| format!("{t:.0}")).collect();
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} ({}) | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} ({}) | {} | {} |\n",
             r.run,
-            r.killed,
+            r.fault,
+            r.target,
             if times.is_empty() {
                 "-".into()
             } else {
@@ -251,7 +372,53 @@ pub fn table(results: &[FaultRun]) -> String {
     s
 }
 
-/// Where the runs go when `--out` is not given.
-pub fn default_out() -> PathBuf {
-    PathBuf::from("runs/bench-faults")
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_disturbed_runs_take_every_fault_with_every_kind_it_applies_to() {
+        use Fault::*;
+        assert_eq!(
+            plan(&[Hang, Corrupt]),
+            [
+                (Hang, "actor-"),
+                (Hang, "eval-actor-"),
+                (Hang, "learner"),
+                (Hang, "curriculum-server"),
+                (Corrupt, "learner"),
+                (Corrupt, "curriculum-server"),
+            ]
+        );
+    }
+
+    #[test]
+    fn damage_flips_one_bit_of_the_newest_networks_file_or_the_snapshot() {
+        let run = tempfile::tempdir().unwrap();
+        let dir = run.path().join("checkpoint");
+        std::fs::create_dir(&dir).unwrap();
+        std::fs::write(
+            dir.join("learner.json"),
+            r#"{"networks_file": "networks.7.safetensors"}"#,
+        )
+        .unwrap();
+        let original = vec![0x5au8; 64];
+        std::fs::write(dir.join("networks.7.safetensors"), &original).unwrap();
+        std::fs::write(run.path().join("curriculum.snapshot.json"), &original).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for (kind, name) in [
+            ("learner", "checkpoint/networks.7.safetensors"),
+            ("curriculum-server", "curriculum.snapshot.json"),
+        ] {
+            let file = damage(run.path(), kind, &mut rng).unwrap();
+            assert_eq!(file, run.path().join(name));
+            let bytes = std::fs::read(&file).unwrap();
+            let flipped: u32 = bytes
+                .iter()
+                .zip(&original)
+                .map(|(a, b)| (a ^ b).count_ones())
+                .sum();
+            assert_eq!(flipped, 1, "{name}");
+        }
+    }
 }

@@ -9,7 +9,7 @@ use std::process::{Command, ExitStatus, Stdio};
 
 use anyhow::{bail, Context, Result};
 
-use crate::ReplayArgs;
+use super::ReplayArgs;
 
 /// The hidden subcommand that reads a demo file in this process (`rfcl demos load FILE`).
 pub const LOAD: [&str; 2] = ["demos", "load"];

@@ -7,9 +7,8 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use rfcl_core::demo::DemoSet;
-use rfcl_curriculum::dashboard::{DashboardView, DemoBar};
+use rfcl_core::run_state::{DemoBar, RunState};
 use rfcl_proto::auth::{authenticated, Token};
-use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 
 /// Where a run's per-demo view came from.
@@ -51,7 +50,7 @@ pub fn run_demos(run_dir: &Path) -> Result<(Vec<DemoBar>, Source)> {
 }
 
 /// The view of the run's curriculum server, if processes.json names one that answers.
-fn live_view(run_dir: &Path) -> Option<(DashboardView, String)> {
+fn live_view(run_dir: &Path) -> Option<(RunState, String)> {
     let text = std::fs::read_to_string(run_dir.join("processes.json")).ok()?;
     let processes: serde_json::Value = serde_json::from_str(&text).ok()?;
     let addr = processes["curriculum"].as_str()?.to_string();
@@ -69,14 +68,7 @@ fn live_view(run_dir: &Path) -> Option<(DashboardView, String)> {
             .ok()?;
         let mut client = CurriculumClient::new(authenticated(channel, &token))
             .max_decoding_message_size(64 << 20);
-        let reply = tokio::time::timeout(
-            Duration::from_secs(5),
-            client.get_state(v1::GetStateRequest {}),
-        )
-        .await
-        .ok()?
-        .ok()?;
-        let view = serde_json::from_str(&reply.into_inner().json).ok()?;
+        let view = crate::train::fetch_run_state(&mut client).await?;
         Some((view, addr))
     })
 }
@@ -160,7 +152,7 @@ pub fn select(file: &Path, run_dir: &Path, out: &Path, best: Option<usize>) -> R
         Source::Summary(path) => eprintln!("read the run's demos from {}", path.display()),
     }
     let (keep, dropped) = choose(&demos, best);
-    crate::demo_check::refuse_if_it_crashes_the_reader(file)?;
+    super::check::refuse_if_it_crashes_the_reader(file)?;
     let set = DemoSet::load(file).with_context(|| format!("reading {}", file.display()))?;
     let missing: Vec<u64> = demos
         .iter()
@@ -214,7 +206,7 @@ pub fn select(file: &Path, run_dir: &Path, out: &Path, best: Option<usize>) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rfcl_curriculum::dashboard::DemoDifficulty;
+    use rfcl_core::run_state::DemoDifficulty;
 
     fn bar(demo: u32, episode_id: u64, solved: bool, speed: f64, stalled: bool) -> DemoBar {
         DemoBar {

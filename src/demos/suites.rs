@@ -1,7 +1,7 @@
 //! `rfcl demos generate --env metaworld/<task>` and `rfcl demos convert --suite adroit`: the demo
 //! sources of the MetaWorld and Adroit suites (docs/SUITES.md "Demo files"), written in
 //! Python (`python/rfcl_sim/demos.py`) and run here with the venv's Python
-//! ([`demos_sim::python_program`]):
+//! ([`super::sim::python_program`]):
 //!
 //! * `python -m rfcl_sim.demos metaworld --task T -n N --out OUT --seed S`: MetaWorld's scripted
 //!   policy from seeds S, S+1, ...; the first N successful episodes;
@@ -20,7 +20,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::demo::DemoSet;
 
-use crate::demos_sim::{python_program, PYTHON_ENV};
+use super::sim::{python_program, PYTHON_ENV};
 
 /// `--env` prefix of MetaWorld tasks.
 pub const METAWORLD_PREFIX: &str = "metaworld/";

@@ -16,6 +16,7 @@ use std::process::{ExitStatus, Stdio};
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context, Result};
+use rfcl_core::ready::ReadyLine;
 use rfcl_proto::auth::{self, Token};
 use rustix::process::{kill_process, Pid, Signal};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
@@ -136,12 +137,12 @@ pub struct Child {
 impl Child {
     /// Waits for the child's ready line (`<name> ready ...`) on stdout; afterwards its stdout goes
     /// to its log. An exit or `timeout` first is an error that shows the log's tail.
-    pub async fn ready_line(&mut self, timeout: Duration) -> Result<String> {
+    pub async fn ready_line(&mut self, timeout: Duration) -> Result<ReadyLine> {
         let stdout = self.stdout.take().expect("ready_line is called once");
         let mut lines = BufReader::new(stdout).lines();
         let read = tokio::time::timeout(timeout, lines.next_line()).await;
         let line = match read {
-            Ok(Ok(Some(line))) if line.contains(" ready ") => line,
+            Ok(Ok(Some(line))) if ReadyLine::parse(&line).is_some() => ReadyLine { line },
             Ok(Ok(Some(other))) => {
                 self.kill().await;
                 bail!(
@@ -308,7 +309,7 @@ mod tests {
         let mut child = launcher.spawn("learner", "fake-learner", vec![]).unwrap();
         let line = child.ready_line(Duration::from_secs(30)).await.unwrap();
         let expected = std::env::var("OMP_WAIT_POLICY").unwrap_or_else(|_| "PASSIVE".into());
-        assert!(line.ends_with(&format!("omp={expected}")), "{line}");
+        assert_eq!(line.field("omp"), Some(expected.as_str()), "{line}");
     }
 
     #[test]

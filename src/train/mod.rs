@@ -35,7 +35,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
 use rfcl_core::final_counters::{FinalCounters, LearnerCounts, FINAL_COUNTERS_FILE};
 use rfcl_core::run_lock::RunDirLock;
-use rfcl_curriculum::dashboard::DashboardView;
+use rfcl_core::run_state::RunState;
 use rfcl_proto::auth::{self, AuthChannel, ClientAuth, Token};
 use rfcl_proto::v1;
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
@@ -45,9 +45,9 @@ use tonic::transport::Channel;
 
 use children::{describe, find_setpriv, Child, Launcher};
 use progress::{
-    ready_field, restart_delay_s, split_envs, summarize, CompleteEval, CountersSource, Ending,
-    EvalTracker, LearnerCounters, RespawnLimiter, RolledBack, RunProgress, RunShape,
-    ServiceRestart, Silence, SilenceAction, Summary,
+    restart_delay_s, split_envs, summarize, CompleteEval, CountersSource, Ending, EvalTracker,
+    LearnerCounters, RespawnLimiter, RolledBack, RunProgress, RunShape, ServiceRestart, Silence,
+    SilenceAction, Summary,
 };
 
 /// How long a service may take to print its ready line (the learner loads demos and may restore
@@ -72,7 +72,8 @@ pub const SERVICE_RESTART_WINDOW_S: f64 = 600.0;
 /// What `rfcl train` was asked to do.
 #[derive(Debug, Clone)]
 pub struct TrainArgs {
-    pub config: PathBuf,
+    /// The run config; `None` only with `resume` (the run's stored config is used).
+    pub config: Option<PathBuf>,
     pub overrides: Vec<String>,
     pub resume: Option<PathBuf>,
     pub run_dir: Option<PathBuf>,
@@ -105,7 +106,6 @@ struct Prepared {
 }
 
 fn prepare(args: &TrainArgs) -> Result<Prepared> {
-    let requested = resolve_file(&args.config, &args.overrides)?;
     let (cfg, run_dir, resume) = match &args.resume {
         Some(dir) => {
             let stored = dir.join("config.yml");
@@ -117,21 +117,29 @@ fn prepare(args: &TrainArgs) -> Result<Prepared> {
             }
             let cfg = resolve_file(&stored, &args.overrides)
                 .with_context(|| format!("the stored config of the run in {}", dir.display()))?;
-            let mut requested = requested.clone();
-            if requested.train.dataset_path.is_none() {
-                requested.train.dataset_path = cfg.train.dataset_path.clone();
-            }
-            if requested != cfg {
-                eprintln!(
-                    "note: resuming with the run's stored config ({}) and the overrides given; \
-                     it differs from {}",
-                    stored.display(),
-                    args.config.display()
-                );
+            if let Some(path) = &args.config {
+                let mut requested = resolve_file(path, &args.overrides)?;
+                if requested.train.dataset_path.is_none() {
+                    requested.train.dataset_path = cfg.train.dataset_path.clone();
+                }
+                if requested != cfg {
+                    eprintln!(
+                        "note: resuming with the run's stored config ({}) and the overrides \
+                         given; it differs from {}",
+                        stored.display(),
+                        path.display()
+                    );
+                }
             }
             (cfg, dir.clone(), true)
         }
         None => {
+            let Some(path) = &args.config else {
+                bail!(
+                    "a run config is needed: `rfcl train CONFIG`, or `rfcl train --resume RUN_DIR`"
+                );
+            };
+            let requested = resolve_file(path, &args.overrides)?;
             let run_dir = match &args.run_dir {
                 Some(dir) => dir.clone(),
                 None => free_run_dir(&PathBuf::from("runs"), &requested.name),
@@ -214,7 +222,7 @@ fn check_runnable(cfg: &RunConfig) -> Result<()> {
     if !Path::new(demos).is_file() {
         bail!("train.dataset_path: demo file {demos} not found");
     }
-    crate::demo_check::refuse_if_it_crashes_the_reader(Path::new(demos))
+    crate::demos::check::refuse_if_it_crashes_the_reader(Path::new(demos))
         .context("train.dataset_path")?;
     rfcl_actor::suite::check_supported(&cfg.env)?;
     // The reader does not crash on the file (checked just above); the services read it again.
@@ -328,7 +336,7 @@ struct Session {
     started: Instant,
     evals: EvalTracker,
     counters: LearnerCounters,
-    last_view: Option<DashboardView>,
+    last_view: Option<RunState>,
     respawns: RespawnLimiter,
     bar: Bar,
     updates_per_s: f64,
@@ -448,10 +456,11 @@ impl Session {
         )?;
         let line = server.ready_line(READY_TIMEOUT).await?;
         let (Some(curriculum_addr), Some(dashboard)) =
-            (ready_field(&line, "grpc"), ready_field(&line, "dashboard"))
+            (line.field("grpc"), line.field("dashboard"))
         else {
-            bail!("unexpected ready line from the curriculum server: {line:?}");
+            bail!("unexpected ready line from the curriculum server: {line}");
         };
+        let (curriculum_addr, dashboard) = (curriculum_addr.to_owned(), dashboard.to_owned());
         let curriculum_url = format!("http://{curriculum_addr}");
         // A restarted server resumes from the run directory's snapshot on the same ports, where
         // the learner and the actors look for it.
@@ -490,14 +499,14 @@ impl Session {
             learner_args(&cfg.service.learner_port.to_string(), prep.resume),
         )?;
         let line = learner.ready_line(READY_TIMEOUT).await?;
-        let Some(learner_addr) = ready_field(&line, "grpc") else {
-            bail!("unexpected ready line from the learner: {line:?}");
+        let Some(learner_addr) = line.field("grpc").map(str::to_owned) else {
+            bail!("unexpected ready line from the learner: {line}");
         };
         let learner_args = learner_args(&port_of(&learner_addr)?.to_string(), false);
         let learner_url = format!("http://{learner_addr}");
         println!("dashboard: {dashboard}");
         eprintln!("curriculum server at {curriculum_url}, learner at {learner_url}");
-        if let Some(metrics) = ready_field(&line, "metrics") {
+        if let Some(metrics) = line.field("metrics") {
             eprintln!("learner metrics (Prometheus): {metrics}");
         }
 
@@ -707,8 +716,7 @@ impl Session {
         if let Some(short) = children::short_of_space(&self.prep.run_dir) {
             bail!(
                 "the {name} died ({cause}) with {short}: its checkpoints and logs cannot be \
-                 written there. Free space, then continue with `rfcl train {} --resume {}`{tail}",
-                self.prep.config_path.display(),
+                 written there. Free space, then continue with `rfcl train --resume {}`{tail}",
                 self.prep.run_dir.display()
             );
         }
@@ -769,7 +777,7 @@ impl Session {
                     }
                     tokio::time::sleep(POLL_EVERY).await;
                 }
-                if let Some(metrics) = ready_field(&line, "metrics") {
+                if let Some(metrics) = line.field("metrics") {
                     self.bar
                         .println(format!("learner metrics (Prometheus): {metrics}"));
                 }
@@ -860,7 +868,7 @@ impl Session {
              {final_policy}, {} env steps)",
             last.counts.env_steps
         ));
-        let episodes_reported = |view: &Option<DashboardView>| {
+        let episodes_reported = |view: &Option<RunState>| {
             view.as_ref()
                 .map_or(0, |v| v.evals.iter().map(|p| p.episodes).sum::<u64>())
         };
@@ -982,16 +990,8 @@ impl Session {
         true
     }
 
-    async fn fetch_state(&mut self) -> Option<DashboardView> {
-        let mut client = self.curriculum.clone();
-        let reply = tokio::time::timeout(
-            Duration::from_secs(5),
-            client.get_state(v1::GetStateRequest {}),
-        )
-        .await
-        .ok()?
-        .ok()?;
-        serde_json::from_str(&reply.into_inner().json).ok()
+    async fn fetch_state(&mut self) -> Option<RunState> {
+        fetch_run_state(&mut self.curriculum.clone()).await
     }
 
     /// True when the curriculum server answered.
@@ -1043,7 +1043,7 @@ impl Session {
 
     /// Keeps the curriculum server's latest state and prints and records the evals it completes;
     /// true if there were any.
-    fn take_view(&mut self, view: DashboardView) -> bool {
+    fn take_view(&mut self, view: RunState) -> bool {
         let fresh = self.evals.update(&view.evals, self.wall_s());
         let any = !fresh.is_empty();
         for eval in fresh {
@@ -1145,8 +1145,7 @@ impl Session {
         println!("{}", serde_json::to_string_pretty(&summary)?);
         match ending {
             Ending::Interrupted => eprintln!(
-                "interrupted: continue with `rfcl train {} --resume {}`",
-                self.prep.config_path.display(),
+                "interrupted: continue with `rfcl train --resume {}`",
                 self.prep.run_dir.display()
             ),
             Ending::Failed => unreachable!("a failure returned above"),
@@ -1265,4 +1264,17 @@ impl Bar {
             bar.finish_and_clear();
         }
     }
+}
+
+/// The run's state from its curriculum server (GetState), `None` when the server does not answer
+/// within 5 s or its reply is not a run state.
+pub async fn fetch_run_state(client: &mut CurriculumClient<AuthChannel>) -> Option<RunState> {
+    let reply = tokio::time::timeout(
+        Duration::from_secs(5),
+        client.get_state(v1::GetStateRequest {}),
+    )
+    .await
+    .ok()?
+    .ok()?;
+    rfcl_proto::convert::run_state(reply.get_ref()).ok()
 }

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 
 use rfcl_core::config::eval_point;
 use rfcl_core::final_counters::LearnerCounts;
-use rfcl_curriculum::dashboard::{DashboardView, DemoBar, EvalPoint, RefusedReports};
+use rfcl_core::run_state::{DemoBar, EvalPoint, RefusedReports, RunState};
 use serde::{Deserialize, Serialize};
 
 /// Evals whose running mean decides an early stop (`service.stop_at_eval_success`; the curriculum
@@ -466,7 +466,7 @@ pub struct RunShape {
 
 /// Builds the summary of a run from its trackers and the curriculum server's last state.
 pub fn summarize(
-    view: &DashboardView,
+    view: &RunState,
     evals: &EvalTracker,
     learner: LearnerCounters,
     progress: &RunProgress,
@@ -528,7 +528,7 @@ pub fn summarize(
         final_eval: evals.last(),
         eval_success_mean_last_5: evals.running_mean(),
         eval_success_last_5_ci95: evals.running_interval(),
-        train_success_rate: view.history.last().map(|p| p.train_success_rate),
+        train_success_rate: view.train_success_rate,
         curriculum_episodes: view.episodes,
         curriculum_env_steps: view.env_steps,
         expired_leases: view.expired_leases,
@@ -629,13 +629,6 @@ impl Silence {
             SilenceAction::Wait
         }
     }
-}
-
-/// The address in a service's ready line: `<name> ready grpc=ADDR dashboard=URL`.
-pub fn ready_field(line: &str, key: &str) -> Option<String> {
-    line.split_whitespace()
-        .find_map(|w| w.strip_prefix(key)?.strip_prefix('='))
-        .map(str::to_owned)
 }
 
 #[cfg(test)]
@@ -819,14 +812,12 @@ mod tests {
             ],
             7.0,
         );
-        let view: DashboardView = serde_json::from_value(serde_json::json!({
+        let view: RunState = serde_json::from_value(serde_json::json!({
             "run_name": "r", "env_id": "PointMaze-v0", "stage": 2, "stage_epoch": 1,
-            "env_steps": 2900, "stage_1_env_steps": 1500, "episodes": 100, "episodes_per_s": 1.0,
-            "open_leases": 3, "expired_leases": 4, "sim_worker_restarts": 2, "failed_resets": 5,
+            "env_steps": 2900, "stage_1_env_steps": 1500, "episodes": 100,
+            "expired_leases": 4, "sim_worker_restarts": 2, "failed_resets": 5,
             "refused_reports": {"duplicate": 1, "expired": 2, "unknown": 0, "epoch_mismatch": 3, "malformed": 0},
-            "solved_frac": 1.0, "demos": [], "levels": [], "actors": [], "evals": [],
-            "history": [{"wall_s": 1.0, "env_steps": 2900, "stage": 2, "start_step_frac_avg": 0.0,
-                          "solved_frac": 1.0, "train_success_rate": 0.75}],
+            "train_success_rate": 0.75, "demos": [], "evals": [],
         }))
         .unwrap();
         let progress = RunProgress {
@@ -1034,20 +1025,5 @@ mod tests {
         assert!(r.allow(1, 20.0));
         assert!(!r.allow(1, 30.0), "a fourth death within a minute");
         assert!(r.allow(1, 200.0), "old deaths are forgotten");
-    }
-
-    #[test]
-    fn ready_lines_parse() {
-        let line = "curriculum-server ready grpc=127.0.0.1:4000 dashboard=http://127.0.0.1:4001/";
-        assert_eq!(ready_field(line, "grpc").unwrap(), "127.0.0.1:4000");
-        assert_eq!(
-            ready_field(line, "dashboard").unwrap(),
-            "http://127.0.0.1:4001/"
-        );
-        assert_eq!(
-            ready_field("learner ready grpc=127.0.0.1:9", "grpc").unwrap(),
-            "127.0.0.1:9"
-        );
-        assert_eq!(ready_field("learner ready", "grpc"), None);
     }
 }

@@ -23,6 +23,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+pub use rfcl_core::ready::ReadyLine;
 pub use rustix::process::Signal;
 
 /// How long [`start_service`] waits for a ready line: services start in a second or two, but a
@@ -171,7 +172,7 @@ impl ChildGuard {
             .take()
             .expect("wait_ready needs the child's stdout piped, and is called once");
         match lines.recv_timeout(timeout) {
-            Ok(line) if line.contains(" ready ") => ReadyLine { line },
+            Ok(line) if ReadyLine::parse(&line).is_some() => ReadyLine { line },
             Ok(line) => {
                 self.kill_and_reap();
                 self.fail(format!("printed {line:?} instead of its ready line"))
@@ -312,32 +313,6 @@ impl Drop for ChildGuard {
     }
 }
 
-/// A service's ready line, `<name> ready key=value ...`.
-#[derive(Clone, Debug)]
-pub struct ReadyLine {
-    pub line: String,
-}
-
-impl ReadyLine {
-    /// The value of `key=` on the line.
-    pub fn field(&self, key: &str) -> Option<&str> {
-        self.line
-            .split_whitespace()
-            .find_map(|word| word.strip_prefix(key)?.strip_prefix('='))
-    }
-
-    /// The value of `key=`; panics naming the line when it has none.
-    pub fn expect_field(&self, key: &str) -> &str {
-        self.field(key)
-            .unwrap_or_else(|| panic!("no {key}= on the ready line {:?}", self.line))
-    }
-
-    /// `http://` + the gRPC address (`grpc=`).
-    pub fn grpc_url(&self) -> String {
-        format!("http://{}", self.expect_field("grpc"))
-    }
-}
-
 fn program(cmd: &Command) -> String {
     cmd.get_program().to_string_lossy().into_owned()
 }
@@ -345,18 +320,6 @@ fn program(cmd: &Command) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn ready_line_fields() {
-        let ready = ReadyLine {
-            line: "curriculum-server ready grpc=127.0.0.1:4000 dashboard=http://127.0.0.1:4001/"
-                .into(),
-        };
-        assert_eq!(ready.field("grpc"), Some("127.0.0.1:4000"));
-        assert_eq!(ready.grpc_url(), "http://127.0.0.1:4000");
-        assert_eq!(ready.field("dashboard"), Some("http://127.0.0.1:4001/"));
-        assert_eq!(ready.field("metrics"), None);
-    }
 
     #[test]
     fn a_service_that_exits_first_panics_with_its_stderr() {
@@ -381,7 +344,10 @@ mod tests {
             "sh",
             Command::new("sh").args(["-c", "echo 'fake ready grpc=1.2.3.4:5'; exec sleep 600"]),
         );
-        assert_eq!(ready.grpc_url(), "http://1.2.3.4:5");
+        assert_eq!(
+            ready.grpc_url().expect("a grpc= address on the ready line"),
+            "http://1.2.3.4:5"
+        );
         let pid = child.id();
         drop(child);
         assert!(!std::path::Path::new(&format!("/proc/{pid}")).exists());

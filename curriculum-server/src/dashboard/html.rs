@@ -101,49 +101,49 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
 <p class="kv"><span>refused reports: duplicate {dup}, expired {rexp}, unknown {unk}, other epoch {epm}, malformed {mal}, not the lease holder {nothold}, over the time limit {overlim}</span>
 <span>unauthenticated calls {unauth}</span><span>oversized requests {oversized}</span><span>dashboard connections refused {dashrefused}</span><span>actors forgotten {forgotten}</span><span>snapshot failures {snapfail}</span></p>
 "#,
-        name = esc(&view.run_name),
-        env = esc(&view.env_id),
-        stage = view.stage,
-        epoch = view.stage_epoch,
-        finished = if view.finished {
+        name = esc(&view.run.run_name),
+        env = esc(&view.run.env_id),
+        stage = view.run.stage,
+        epoch = view.run.stage_epoch,
+        finished = if view.run.finished {
             " · <b>run finished</b>"
         } else {
             ""
         },
-        steps = view.env_steps,
-        episodes = view.episodes,
+        steps = view.run.env_steps,
+        episodes = view.run.episodes,
         eps = view.episodes_per_s,
         open = view.open_leases,
-        expired = view.expired_leases,
-        restarts = view.sim_worker_restarts,
-        failedresets = view.failed_resets,
+        expired = view.run.expired_leases,
+        restarts = view.run.sim_worker_restarts,
+        failedresets = view.run.failed_resets,
         solved = view.solved_frac * 100.0,
-        dup = view.refused_reports.duplicate,
-        rexp = view.refused_reports.expired,
-        unk = view.refused_reports.unknown,
-        epm = view.refused_reports.epoch_mismatch,
-        mal = view.refused_reports.malformed,
-        nothold = view.refused_reports.not_holder,
-        overlim = view.refused_reports.over_time_limit,
+        dup = view.run.refused_reports.duplicate,
+        rexp = view.run.refused_reports.expired,
+        unk = view.run.refused_reports.unknown,
+        epm = view.run.refused_reports.epoch_mismatch,
+        mal = view.run.refused_reports.malformed,
+        nothold = view.run.refused_reports.not_holder,
+        overlim = view.run.refused_reports.over_time_limit,
         unauth = view.unauthenticated_calls,
         oversized = view.oversized_requests,
         dashrefused = view.dashboard_refused,
         forgotten = view.actors_forgotten,
         snapfail = view.snapshot_failures,
     );
-    if let Some(s1) = view.stage_1_env_steps {
+    if let Some(s1) = view.run.stage_1_env_steps {
         let _ = writeln!(h, "<p>stage 1 ended after <b>{s1}</b> env steps</p>");
     }
     learner_panel(&mut h, view.learner.as_ref());
     h.push_str("<h2>Reverse curriculum: demos</h2>\n");
-    h.push_str(&demo_bars_svg(&view.demos));
+    h.push_str(&demo_bars_svg(&view.run.demos));
     h.push_str("<h3>Frontiers over env steps</h3>\n");
     h.push_str(&demo_frontiers_svg(
-        &view.demos,
-        view.stage_1_env_steps.unwrap_or(view.env_steps),
+        &view.run.demos,
+        view.run.stage_1_env_steps.unwrap_or(view.run.env_steps),
     ));
     h.push_str("\n<p class=\"legend\">");
-    for (i, d) in view.demos.iter().enumerate() {
+    for (i, d) in view.run.demos.iter().enumerate() {
         let c = demo_color(i);
         let _ = write!(
             h,
@@ -161,7 +161,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
     }
     h.push_str("</p>\n");
     h.push_str("\n<table id=\"demos\"><tr><th>demo (episode id)</th><th>t_i</th><th>S_i</th><th>t_i / S_i</th><th>frontier success (last m)</th><th>solved</th><th>states / 10k steps</th><th>steps since it moved</th><th>frontier episodes, success</th><th>share of episodes</th><th>flag</th></tr>\n");
-    for d in &view.demos {
+    for d in &view.run.demos {
         let x = &d.difficulty;
         let mut flag = match (x.stalled, x.cell) {
             (true, Some([row, col])) => format!(
@@ -197,7 +197,12 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
             flag,
         );
     }
-    let stalled = view.demos.iter().filter(|d| d.difficulty.stalled).count();
+    let stalled = view
+        .run
+        .demos
+        .iter()
+        .filter(|d| d.difficulty.stalled)
+        .count();
     if stalled > 0 {
         let _ = writeln!(
             h,
@@ -213,7 +218,7 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
         h.push_str("</div>\n<p>Green: the share of eval episodes from that cell that end at the goal; grey: no episode yet; blue: the demos; red: the goal.</p>\n");
     }
     h.push_str("<h2>Progress</h2>\n");
-    h.push_str(&progress_svg(&view.history, &view.evals));
+    h.push_str(&progress_svg(&view.history, &view.run.evals));
     h.push_str("\n<p class=\"legend\">");
     for (label, colour) in PROGRESS_LEGEND {
         let _ = write!(
@@ -244,9 +249,9 @@ td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}} th{{background:#
             view.levels.len()
         );
     }
-    if !view.evals.is_empty() {
+    if !view.run.evals.is_empty() {
         h.push_str("<h2>Evaluation</h2>\n<table id=\"evals\"><tr><th>policy version</th><th>env steps</th><th>episodes</th><th>success at end</th><th>success once</th><th>return</th><th>video</th></tr>\n");
-        for e in view.evals.iter().rev().take(10) {
+        for e in view.run.evals.iter().rev().take(10) {
             let _ = writeln!(
                 h,
                 "<tr><td>{}</td><td>{}</td><td>{}</td><td>{:.2}</td><td>{:.2}</td><td>{:.1}</td><td>{}</td></tr>",

@@ -26,21 +26,26 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         &mut r,
         "stage",
         "Current stage (1 reverse, 2 forward)",
-        view.stage as f64,
+        view.run.stage as f64,
     );
     gauge(
         &mut r,
         "stage_epoch",
         "Stage epoch, bumped on every stage change",
-        view.stage_epoch as f64,
+        view.run.stage_epoch as f64,
     );
     counter(
         &mut r,
         "env_steps",
         "Env steps of reported train episodes",
-        view.env_steps,
+        view.run.env_steps,
     );
-    counter(&mut r, "episodes", "Reported train episodes", view.episodes);
+    counter(
+        &mut r,
+        "episodes",
+        "Reported train episodes",
+        view.run.episodes,
+    );
     gauge(
         &mut r,
         "episodes_per_second",
@@ -63,7 +68,7 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         &mut r,
         "leases_expired",
         "Leases that expired unreported",
-        view.expired_leases,
+        view.run.expired_leases,
     );
     counter(
         &mut r,
@@ -87,13 +92,13 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         &mut r,
         "sim_worker_restarts",
         "Simulator worker processes restarted after a crash or hang (episode replayed)",
-        view.sim_worker_restarts,
+        view.run.sim_worker_restarts,
     );
     counter(
         &mut r,
         "failed_resets",
         "Leases an actor could not reset its env to (the episode never ran)",
-        view.failed_resets,
+        view.run.failed_resets,
     );
     counter(
         &mut r,
@@ -114,7 +119,7 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
         view.solved_frac,
     );
     let refused = Family::<Vec<(String, String)>, Counter>::default();
-    let rr = view.refused_reports;
+    let rr = view.run.refused_reports;
     for (reason, v) in [
         ("duplicate", rr.duplicate),
         ("expired", rr.expired),
@@ -140,7 +145,7 @@ pub fn metrics_text(view: &DashboardView, leases_granted: u64) -> String {
     let since_move = Family::<Vec<(String, String)>, Gauge>::default();
     let speed =
         Family::<Vec<(String, String)>, Gauge<f64, std::sync::atomic::AtomicU64>>::default();
-    for d in &view.demos {
+    for d in &view.run.demos {
         let labels = vec![("demo".to_string(), d.demo.to_string())];
         start
             .get_or_create(&labels)

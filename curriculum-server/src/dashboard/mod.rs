@@ -20,8 +20,8 @@ pub use html::render_html;
 pub use metrics::metrics_text;
 pub use view::{
     ActorRow, DashboardView, DemoBar, DemoDifficulty, EvalPoint, LearnerPanel, LearnerWindowView,
-    LevelRow, MazeCell, MazeSnapshot, MazeView, ProgressPoint, RefusedReports, TimeShares,
-    VideoLink,
+    LevelRow, MazeCell, MazeSnapshot, MazeView, ProgressPoint, RefusedReports, RunState,
+    TimeShares, VideoLink,
 };
 
 #[cfg(test)]

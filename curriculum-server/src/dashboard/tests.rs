@@ -3,55 +3,14 @@ use super::*;
 
 fn view() -> DashboardView {
     DashboardView {
-        run_name: "test <run>".into(),
-        env_id: "PointMaze-v0".into(),
-        stage: 1,
-        demos: vec![
-            DemoBar {
-                demo: 0,
-                episode_id: 3,
-                t: 10,
-                states: 41,
-                frontier_success_rate: 0.5,
-                solved: false,
-                difficulty: DemoDifficulty {
-                    episodes: 30,
-                    episode_share: 0.75,
-                    frontier_episodes: 12,
-                    frontier_success_rate: 0.25,
-                    speed: 1.5,
-                    env_steps_since_move: 61_000,
-                    solved_env_steps: None,
-                    stalled: true,
-                    cell: Some([4, 9]),
-                    frontier: vec![[20_000, 32], [45_000, 10]],
-                    failed_resets: 0,
-                    last_reset_failure: None,
-                },
-            },
-            DemoBar {
-                demo: 1,
-                episode_id: 7,
-                t: 0,
-                states: 30,
-                frontier_success_rate: 1.0,
-                solved: true,
-                difficulty: DemoDifficulty {
-                    episodes: 10,
-                    episode_share: 0.25,
-                    frontier_episodes: 8,
-                    frontier_success_rate: 0.875,
-                    speed: 4.0,
-                    env_steps_since_move: 0,
-                    solved_env_steps: Some(72_000),
-                    stalled: false,
-                    cell: Some([1, 2]),
-                    frontier: vec![[30_000, 21], [50_000, 13], [60_000, 5], [66_000, 0]],
-                    failed_resets: 0,
-                    last_reset_failure: None,
-                },
-            },
-        ],
+        run: RunState {
+            run_name: "test <run>".into(),
+            env_id: "PointMaze-v0".into(),
+            stage: 1,
+            env_steps: 106_000,
+            demos: demos(),
+            ..Default::default()
+        },
         history: vec![
             ProgressPoint {
                 wall_s: 0.0,
@@ -70,9 +29,57 @@ fn view() -> DashboardView {
                 train_success_rate: 0.4,
             },
         ],
-        env_steps: 106_000,
         ..Default::default()
     }
+}
+
+fn demos() -> Vec<DemoBar> {
+    vec![
+        DemoBar {
+            demo: 0,
+            episode_id: 3,
+            t: 10,
+            states: 41,
+            frontier_success_rate: 0.5,
+            solved: false,
+            difficulty: DemoDifficulty {
+                episodes: 30,
+                episode_share: 0.75,
+                frontier_episodes: 12,
+                frontier_success_rate: 0.25,
+                speed: 1.5,
+                env_steps_since_move: 61_000,
+                solved_env_steps: None,
+                stalled: true,
+                cell: Some([4, 9]),
+                frontier: vec![[20_000, 32], [45_000, 10]],
+                failed_resets: 0,
+                last_reset_failure: None,
+            },
+        },
+        DemoBar {
+            demo: 1,
+            episode_id: 7,
+            t: 0,
+            states: 30,
+            frontier_success_rate: 1.0,
+            solved: true,
+            difficulty: DemoDifficulty {
+                episodes: 10,
+                episode_share: 0.25,
+                frontier_episodes: 8,
+                frontier_success_rate: 0.875,
+                speed: 4.0,
+                env_steps_since_move: 0,
+                solved_env_steps: Some(72_000),
+                stalled: false,
+                cell: Some([1, 2]),
+                frontier: vec![[30_000, 21], [50_000, 13], [60_000, 5], [66_000, 0]],
+                failed_resets: 0,
+                last_reset_failure: None,
+            },
+        },
+    ]
 }
 
 #[test]
@@ -83,7 +90,7 @@ fn the_page_flags_stalled_demos_with_where_they_stall_and_charts_each_frontier()
     assert!(html.contains("1 demo(s) stalled"), "{html}");
     assert!(html.contains("demo 0 (stalled)") && html.contains("demo 1 &nbsp;"));
     // The frontier chart: one step line per demo, the stalled one drawn thicker.
-    let svg = demo_frontiers_svg(&view().demos, 106_000);
+    let svg = demo_frontiers_svg(&view().run.demos, 106_000);
     assert_eq!(svg.matches("stroke-width=\"4\"").count(), 1, "{svg}");
     assert_eq!(svg.matches("stroke-width=\"2\"").count(), 1, "{svg}");
     // The progress chart's legend is under it, not over the curves.
@@ -103,7 +110,7 @@ fn the_page_has_one_bar_row_per_demo_and_escapes_names() {
 #[test]
 fn the_page_shows_sim_worker_restarts_in_total_and_per_actor() {
     let mut v = view();
-    v.sim_worker_restarts = 7;
+    v.run.sim_worker_restarts = 7;
     v.actors = vec![ActorRow {
         actor_id: 3,
         seconds_since_seen: 1.0,
@@ -123,9 +130,9 @@ fn the_page_shows_sim_worker_restarts_in_total_and_per_actor() {
 #[test]
 fn the_page_shows_failed_resets_in_total_and_per_demo_with_the_reason() {
     let mut v = view();
-    v.failed_resets = 3;
-    v.demos[1].difficulty.failed_resets = 3;
-    v.demos[1].difficulty.last_reset_failure = Some((
+    v.run.failed_resets = 3;
+    v.run.demos[1].difficulty.failed_resets = 3;
+    v.run.demos[1].difficulty.last_reset_failure = Some((
         12,
         "state field `collided` is invalid: 50 <is> neither 0 nor 1".into(),
     ));
@@ -145,7 +152,7 @@ fn the_page_shows_failed_resets_in_total_and_per_demo_with_the_reason() {
 
 #[test]
 fn demo_bars_are_svg_rectangles() {
-    let svg = demo_bars_svg(&view().demos);
+    let svg = demo_bars_svg(&view().run.demos);
     assert!(svg.starts_with("<svg"));
     // Background + plot area + one filled rectangle per demo at least.
     assert!(svg.matches("<rect").count() >= 3, "{svg}");
@@ -155,12 +162,12 @@ fn demo_bars_are_svg_rectangles() {
 #[test]
 fn metrics_use_rfcl_names_and_labels() {
     let mut v = view();
-    v.refused_reports.duplicate = 3;
-    v.refused_reports.over_time_limit = 4;
-    v.refused_reports.not_holder = 5;
+    v.run.refused_reports.duplicate = 3;
+    v.run.refused_reports.over_time_limit = 4;
+    v.run.refused_reports.not_holder = 5;
     v.actors_forgotten = 6;
     v.snapshot_failures = 7;
-    v.sim_worker_restarts = 2;
+    v.run.sim_worker_restarts = 2;
     let text = metrics_text(&v, 42);
     assert!(
         text.contains("rfcl_curriculum_sim_worker_restarts_total 2"),
@@ -331,7 +338,7 @@ fn the_eval_table_links_each_policys_recorded_episodes() {
         success_once: 0.6,
         mean_return: 3.0,
     };
-    v.evals = vec![eval(4, 20_000), eval(9, 40_000)];
+    v.run.evals = vec![eval(4, 20_000), eval(9, 40_000)];
     let html = render_html(&v, 2);
     assert!(!html.contains("eval episode(s) recorded"), "{html}");
 

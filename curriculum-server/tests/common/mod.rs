@@ -136,7 +136,7 @@ impl ServerProcess {
         let (child, ready) =
             child::start_service("curriculum-server", child::with_token(&mut cmd, TEST_TOKEN));
         ServerProcess {
-            grpc: ready.grpc_url(),
+            grpc: ready.grpc_url().expect("a grpc= address on the ready line"),
             dashboard: ready.expect_field("dashboard").to_string(),
             child,
         }
@@ -162,6 +162,12 @@ impl ServerProcess {
             child::output(Command::new("curl").args(["-sf", &format!("{}{path}", self.dashboard)]));
         assert!(out.status.success(), "GET {path} failed ({})", out.status);
         String::from_utf8(out.stdout).unwrap()
+    }
+
+    /// The dashboard's view (`/api/state`): the run's state and what only the page shows
+    /// (forward levels, open leases, actors).
+    pub fn view(&self) -> rfcl_curriculum::dashboard::DashboardView {
+        serde_json::from_str(&self.dashboard_get("api/state")).expect("/api/state is a view")
     }
 
     pub fn sigkill(&mut self) {

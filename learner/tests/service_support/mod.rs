@@ -104,7 +104,7 @@ impl Curriculum {
         let (child, ready) = child::start_service("curriculum-server", &mut cmd);
         Curriculum {
             child,
-            grpc: ready.grpc_url(),
+            grpc: ready.grpc_url().expect("a grpc= address on the ready line"),
         }
     }
 
@@ -202,7 +202,7 @@ impl Learner {
             "unexpected ready line {:?}",
             ready.line
         );
-        let grpc = ready.grpc_url();
+        let grpc = ready.grpc_url().expect("a grpc= address on the ready line");
         (Learner { child, grpc }, ready)
     }
 
