@@ -10,7 +10,8 @@
 //! it). Run 0 is undisturbed; run i > 0 applies the (fault, kind) pair `(i - 1) % pairs` of the
 //! faults asked for, each with the kinds it applies to, twice when `i % 3 == 0`, at times drawn
 //! from `seed + i` between [`FAULT_FROM_S`] and [`FAULT_UNTIL_S`] after the session's processes
-//! are up. The runs' logs and run directories stay in `--out`.
+//! are up. The runs' logs and run directories stay in `--out`, and each run's result is appended to
+//! `--out`/results.jsonl as it ends.
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -108,6 +109,8 @@ pub fn run(
     if !demos.exists() {
         crate::demos::generate("pointmaze", 5, &demos, 0)?;
     }
+    let jsonl = out.join("results.jsonl");
+    std::fs::write(&jsonl, "").with_context(|| format!("writing {}", jsonl.display()))?;
     let mut results = Vec::new();
     for i in 0..runs {
         let mut rng = ChaCha8Rng::seed_from_u64(seed + u64::from(i));
@@ -143,9 +146,39 @@ pub fn run(
             result.ending,
             started.elapsed().as_secs_f64()
         );
+        // Kept as each run ends, so that a bench stopped later loses none of them.
+        let mut line = serde_json::to_string(&result)?;
+        line.push('\n');
+        std::fs::OpenOptions::new()
+            .append(true)
+            .open(&jsonl)
+            .and_then(|mut f| std::io::Write::write_all(&mut f, line.as_bytes()))
+            .with_context(|| format!("writing {}", jsonl.display()))?;
         results.push(result);
     }
     Ok(results)
+}
+
+/// The `rfcl train` session of one run: should the bench leave it early (an error), it is stopped
+/// like a user would (SIGTERM, then SIGKILL after 30 s), so that no run outlives the bench.
+struct Session(std::process::Child);
+
+impl Drop for Session {
+    fn drop(&mut self) {
+        if !matches!(self.0.try_wait(), Ok(None)) {
+            return;
+        }
+        signal("the session", self.0.id() as i32, Signal::TERM);
+        let until = Instant::now() + Duration::from_secs(30);
+        while Instant::now() < until {
+            if !matches!(self.0.try_wait(), Ok(None)) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
 }
 
 /// What one run does, to which kind of process, at which moments (s after start-up).
@@ -169,22 +202,24 @@ fn one_run(
     let log_path = out.join(format!("run-{index:02}.log"));
     let log = std::fs::File::create(&log_path)?;
     let exe = std::env::current_exe()?;
-    let mut child = Command::new(&exe)
-        .arg("train")
-        .arg(config)
-        .arg(format!("train.dataset_path={}", demos.display()))
-        .arg(format!("service.stop_at_eval_success={bar}"))
-        .arg("--run-dir")
-        .arg(&run_dir)
-        .stdin(Stdio::null())
-        .stdout(Stdio::from(log.try_clone()?))
-        .stderr(Stdio::from(log))
-        .spawn()
-        .with_context(|| format!("starting {} train", exe.display()))?;
+    let mut child = Session(
+        Command::new(&exe)
+            .arg("train")
+            .arg(config)
+            .arg(format!("train.dataset_path={}", demos.display()))
+            .arg(format!("service.stop_at_eval_success={bar}"))
+            .arg("--run-dir")
+            .arg(&run_dir)
+            .stdin(Stdio::null())
+            .stdout(Stdio::from(log.try_clone()?))
+            .stderr(Stdio::from(log))
+            .spawn()
+            .with_context(|| format!("starting {} train", exe.display()))?,
+    );
     let deadline = Instant::now() + RUN_LIMIT;
     let processes = run_dir.join("processes.json");
     while !processes.exists() {
-        if child.try_wait()?.is_some() || Instant::now() > deadline {
+        if child.0.try_wait()?.is_some() || Instant::now() > deadline {
             bail!("run {index} did not start: see {}", log_path.display());
         }
         std::thread::sleep(Duration::from_millis(200));
@@ -194,33 +229,46 @@ fn one_run(
     let mut pending = times.iter();
     let mut next = pending.next();
     let mut stopped: Vec<(i32, Instant)> = Vec::new();
+    // When each fault was applied (a damaged checkpoint waits for the first one to exist).
+    let mut applied_at = Vec::new();
     let status = loop {
-        if let Some(status) = child.try_wait()? {
+        if let Some(status) = child.0.try_wait()? {
             break status;
         }
         if Instant::now() > deadline {
-            let _ = child.kill();
+            let _ = child.0.kill();
             bail!(
                 "run {index} did not end within {RUN_LIMIT:?}: see {}",
                 log_path.display()
             );
         }
         if let (Some(&at), Some(d)) = (next, &disturbance) {
-            if up.elapsed().as_secs_f64() >= at {
+            let now = up.elapsed().as_secs_f64();
+            if now >= at {
                 let (name, pid) = find(&processes, d.kind)?;
-                match d.fault {
-                    Fault::Kill => signal(&name, pid, Signal::KILL),
+                let applied = match d.fault {
+                    Fault::Kill => {
+                        signal(&name, pid, Signal::KILL);
+                        true
+                    }
                     Fault::Hang => {
                         signal(&name, pid, Signal::STOP);
                         stopped.push((pid, Instant::now()));
+                        true
                     }
-                    Fault::Corrupt => {
-                        let file = damage(&run_dir, d.kind, rng)?;
-                        eprintln!("faults:   flipped a bit of {}", file.display());
-                        signal(&name, pid, Signal::KILL);
-                    }
+                    Fault::Corrupt => match damage(&run_dir, d.kind, rng)? {
+                        Some(file) => {
+                            eprintln!("faults:   flipped a bit of {}", file.display());
+                            signal(&name, pid, Signal::KILL);
+                            true
+                        }
+                        None => false,
+                    },
+                };
+                if applied {
+                    applied_at.push(now);
+                    next = pending.next();
                 }
-                next = pending.next();
             }
         }
         stopped.retain(|&(pid, since)| {
@@ -270,7 +318,7 @@ fn one_run(
         target: disturbance
             .as_ref()
             .map_or("-".into(), |d| d.kind.trim_end_matches('-').to_owned()),
-        fault_times_s: times.to_vec(),
+        fault_times_s: applied_at,
         reached_bar: ending == "eval_success",
         ending,
         env_steps_to_bar: to_bar["env_steps"].as_u64(),
@@ -303,18 +351,31 @@ fn find(processes: &Path, prefix: &str) -> Result<(String, i32)> {
 }
 
 fn signal(name: &str, pid: i32, signal: Signal) {
-    eprintln!("faults:   {signal:?} {name} (pid {pid})");
+    let what = [
+        (Signal::KILL, "SIGKILL"),
+        (Signal::STOP, "SIGSTOP"),
+        (Signal::CONT, "SIGCONT"),
+        (Signal::TERM, "SIGTERM"),
+    ]
+    .into_iter()
+    .find_map(|(s, what)| (s == signal).then_some(what))
+    .unwrap_or("a signal");
+    eprintln!("faults:   {what} to {name} (pid {pid})");
     if let Some(pid) = rustix::process::Pid::from_raw(pid) {
         let _ = rustix::process::kill_process(pid, signal);
     }
 }
 
 /// Flips one random bit of `kind`'s newest checkpoint file in `run_dir`: the learner's networks
-/// file (named by its manifest) or the curriculum snapshot. Returns the file.
-fn damage(run_dir: &Path, kind: &str, rng: &mut ChaCha8Rng) -> Result<PathBuf> {
+/// file (named by its manifest) or the curriculum snapshot. Returns the file, or `None` while
+/// there is no checkpoint yet.
+fn damage(run_dir: &Path, kind: &str, rng: &mut ChaCha8Rng) -> Result<Option<PathBuf>> {
     let file = if kind == "learner" {
         let dir = run_dir.join("checkpoint");
         let manifest = dir.join("learner.json");
+        if !manifest.exists() {
+            return Ok(None);
+        }
         let doc: Value = serde_json::from_str(
             &std::fs::read_to_string(&manifest)
                 .with_context(|| format!("reading {}", manifest.display()))?,
@@ -328,6 +389,9 @@ fn damage(run_dir: &Path, kind: &str, rng: &mut ChaCha8Rng) -> Result<PathBuf> {
     } else {
         run_dir.join("curriculum.snapshot.json")
     };
+    if !file.exists() {
+        return Ok(None);
+    }
     let mut bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
     if bytes.is_empty() {
         bail!("{} is empty", file.display());
@@ -335,7 +399,7 @@ fn damage(run_dir: &Path, kind: &str, rng: &mut ChaCha8Rng) -> Result<PathBuf> {
     let at = rng.random_range(0..bytes.len());
     bytes[at] ^= 1 << rng.random_range(0..8);
     std::fs::write(&file, bytes).with_context(|| format!("writing {}", file.display()))?;
-    Ok(file)
+    Ok(Some(file))
 }
 
 /// The results as a Markdown table (for benches/RESULTS.md).
@@ -406,11 +470,19 @@ mod tests {
         std::fs::write(dir.join("networks.7.safetensors"), &original).unwrap();
         std::fs::write(run.path().join("curriculum.snapshot.json"), &original).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let empty = tempfile::tempdir().unwrap();
+        for kind in OWNERS {
+            assert_eq!(
+                damage(empty.path(), kind, &mut rng).unwrap(),
+                None,
+                "{kind}"
+            );
+        }
         for (kind, name) in [
             ("learner", "checkpoint/networks.7.safetensors"),
             ("curriculum-server", "curriculum.snapshot.json"),
         ] {
-            let file = damage(run.path(), kind, &mut rng).unwrap();
+            let file = damage(run.path(), kind, &mut rng).unwrap().unwrap();
             assert_eq!(file, run.path().join(name));
             let bytes = std::fs::read(&file).unwrap();
             let flipped: u32 = bytes
