@@ -50,6 +50,9 @@ const FORMAT_V2: &str = "rfcl-learner-checkpoint-v2";
 pub const MANIFEST: &str = "learner.json";
 /// The generation before [`MANIFEST`]'s, kept as the fallback.
 pub const PREVIOUS: &str = "learner.prev.json";
+/// What a user can do when no generation is intact.
+const AFRESH: &str = "move this directory aside to start the learner afresh (the curriculum \
+                      keeps its progress; the learner's networks and replay start over)";
 
 /// Causes are sources, never repeated in the message: `{:#}` (anyhow) and
 /// [`crate::error::chain`] print each once.
@@ -210,11 +213,21 @@ pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>> {
             );
             Ok(Some(previous))
         }
-        Ok(None) => Err(current),
+        // Damage is said with what to do: the learner cannot continue this run's learning.
+        Ok(None) => Err(match current {
+            CheckpointError::Corrupt { .. } => CheckpointError::Corrupt {
+                path: dir.to_path_buf(),
+                problem: format!(
+                    "{}; there is no generation before it to fall back to: {AFRESH}",
+                    crate::error::chain(&current)
+                ),
+            },
+            other => other,
+        }),
         Err(previous) => Err(CheckpointError::Corrupt {
             path: dir.to_path_buf(),
             problem: format!(
-                "both generations are damaged: {}; and {}",
+                "both generations are damaged: {}; and {}; {AFRESH}",
                 crate::error::chain(&current),
                 crate::error::chain(&previous)
             ),
@@ -1146,7 +1159,17 @@ mod tests {
         assert!(
             err.contains("both generations are damaged")
                 && err.contains("networks.2.safetensors")
-                && err.contains("optimizers.1.safetensors"),
+                && err.contains("optimizers.1.safetensors")
+                && err.contains("move this directory aside"),
+            "{err}"
+        );
+        // The first checkpoint of a run has no generation before it.
+        std::fs::remove_file(dir.path().join(PREVIOUS)).unwrap();
+        let err = read_manifest(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("networks.2.safetensors")
+                && err.contains("no generation before it to fall back to")
+                && err.contains("move this directory aside"),
             "{err}"
         );
     }
