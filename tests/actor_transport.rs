@@ -19,15 +19,12 @@ fn start_service(
     name: &str,
     program: std::path::PathBuf,
     args: &[&str],
-    field: &str,
-) -> (ChildGuard, String) {
+) -> (ChildGuard, child::ReadyLine) {
     let mut cmd = Command::new(program);
     cmd.args(args)
         .env("RFCL_TOKEN", TEST_TOKEN)
         .env("OMP_WAIT_POLICY", "PASSIVE");
-    let (child, ready) = child::start_service(name, &mut cmd);
-    let value = ready.expect_field(field).to_string();
-    (child, value)
+    child::start_service(name, &mut cmd)
 }
 
 struct Services {
@@ -48,13 +45,12 @@ fn start_services(learner_extra: &[&str]) -> Services {
         demos.to_str().unwrap().to_string(),
         run.to_str().unwrap().to_string(),
     );
-    let (curriculum, cur_addr) = start_service(
+    let (curriculum, cur_ready) = start_service(
         "curriculum-server",
         rfcl_testkit::binaries::curriculum_server(),
         &["--config", &config, "--demos", &demos, "--run-dir", &run],
-        "grpc",
     );
-    let cur_url = format!("http://{cur_addr}");
+    let cur_url = format!("http://{}", cur_ready.expect_field("grpc"));
     let mut args = vec![
         "--config",
         &config,
@@ -68,11 +64,11 @@ fn start_services(learner_extra: &[&str]) -> Services {
         "1",
     ];
     args.extend_from_slice(learner_extra);
-    let (learner, addr) =
-        start_service("learner", rfcl_testkit::binaries::learner(), &args, "grpc");
+    let (learner, ready) = start_service("learner", rfcl_testkit::binaries::learner(), &args);
     let processes = serde_json::json!({
-        "learner": format!("http://{addr}"),
+        "learner": format!("http://{}", ready.expect_field("grpc")),
         "curriculum": cur_url,
+        "dashboard": cur_ready.expect_field("dashboard"),
     });
     Services {
         _curriculum: curriculum,
