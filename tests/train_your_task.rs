@@ -216,6 +216,28 @@ fn a_demo_state_the_env_refuses_is_counted_against_its_demo_and_the_run_goes_on(
         file = demos.display().to_string(),
     );
     let bad: u64 = python(&script).trim().parse().unwrap();
+    // `rfcl demos inspect --config` tries every state in the env and names the first refused.
+    let demos_arg = demos.to_str().unwrap();
+    let (ok, text) = rfcl_cmd(&["demos", "inspect", demos_arg]);
+    assert!(
+        ok && text.contains("reset states not checked: pass --config CFG"),
+        "{text}"
+    );
+    let (ok, text) = rfcl_cmd(&[
+        "demos",
+        "inspect",
+        demos_arg,
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains(&format!("(episode {bad}) state "))
+            && text.contains("is not a valid reset state")
+            && text.contains("is outside the arena"),
+        "{text}"
+    );
+    // `rfcl train` does not start a simulator to try them: the lease on one fails instead.
     let (_, summary) = train(
         dir.path(),
         &config,

@@ -154,19 +154,20 @@ pub fn refused_as_reset_state(
 }
 
 /// The first state of any demo of `demos` that `env` refuses as a reset state: (demo index, its
-/// episode id, state index, why). Every state is tried, in order.
+/// episode id, state index, why). Every state is tried, in order; one on which the simulator
+/// fails (a Python exception, a worker that dies) is refused with the simulator's error.
 pub fn first_refused_state(
     env: &mut dyn Env,
     demos: &[Demo],
-) -> Result<Option<(usize, u64, usize, String)>, EnvError> {
+) -> Option<(usize, u64, usize, String)> {
     for (i, demo) in demos.iter().enumerate() {
         for (t, state) in demo.env_states.chunks_exact(demo.state_dim).enumerate() {
-            if let Some(why) = refused_as_reset_state(env, demo, state)? {
-                return Ok(Some((i, demo.episode_id, t, why)));
+            if let Err(e) = env.reset_to_state(demo.reset.seed, &demo.reset.options, state) {
+                return Some((i, demo.episode_id, t, e.to_string()));
             }
         }
     }
-    Ok(None)
+    None
 }
 
 impl ReplayCheck {

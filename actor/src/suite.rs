@@ -71,41 +71,68 @@ pub fn native_dims(env: &EnvConfig) -> Result<(usize, usize), SuiteError> {
 
 /// Whether the demos of `set` fit `env`: the same observation and action dims and the same state
 /// layout (names, kinds and lengths, in order), so that every demo state is one the env can
-/// restore. For a Python suite a worker is started and stopped to ask the env.
+/// restore; for PointMaze (native and cheap) every state of every demo is also tried as a reset
+/// state, so that a bad one is refused here rather than at an actor's first lease on it. For a
+/// Python suite a worker is started and stopped to ask the env. What `rfcl train` checks.
 pub fn check_demos_fit(env: &EnvConfig, set: &DemoSet) -> Result<(), SuiteError> {
+    check_fit(env, set, env.suite == Suite::Pointmaze)
+}
+
+/// [`check_demos_fit`], and every state of every demo tried as a reset state (after its demo's
+/// seed and options) in the env's own simulator, whatever its suite: one reset per state, which
+/// for a Python suite can take minutes (PegInsertionSide-v1 rebuilds its scene at each, ~170 ms).
+/// What `rfcl demos inspect --config` checks.
+pub fn check_demo_states(env: &EnvConfig, set: &DemoSet) -> Result<(), SuiteError> {
+    check_fit(env, set, true)
+}
+
+fn check_fit(env: &EnvConfig, set: &DemoSet, try_states: bool) -> Result<(), SuiteError> {
     check_supported(env)?;
     let refuse = |why: String| SuiteError::DemosDoNotFit {
         suite: python::suite_name(env.suite),
         env_id: env.env_id.clone(),
         why,
     };
-    if env.suite == Suite::Pointmaze {
-        // Native and cheap: every state of every demo is tried as a reset state, so that a bad
-        // one is refused here rather than ending an actor at its first lease on it.
-        let found = crate::replay::first_refused_state(&mut PointMaze::new(0), &set.demos)
-            .map_err(|e| refuse(e.to_string()))?;
-        if let Some((demo, episode, t, why)) = found {
-            return Err(refuse(format!(
-                "demo {demo} (episode {episode}) state {t} is not a valid reset state: {why}"
-            )));
-        }
-    }
-    let (obs_dim, action_dim, layout) = match env.suite {
+    let (made, layout): (Option<Box<dyn Env>>, _) = match env.suite {
         Suite::Pointmaze => (
-            pointmaze::OBS_DIM,
-            pointmaze::ACTION_DIM,
-            pointmaze::state_layout(),
+            Some(Box::new(PointMaze::new(0))),
+            (
+                pointmaze::OBS_DIM,
+                pointmaze::ACTION_DIM,
+                pointmaze::state_layout(),
+            ),
         ),
         _ => {
             let spec = WorkerSpec::from_env_config(env).map_err(|e| python_error(env, e))?;
-            python::describe_layout(&spec).map_err(|e| python_error(env, e))?
+            if try_states {
+                let made = PythonEnv::start(spec, 0).map_err(|e| python_error(env, e))?;
+                let layout = (
+                    made.obs_dim(),
+                    made.action_dim(),
+                    made.state_layout().clone(),
+                );
+                (Some(Box::new(made)), layout)
+            } else {
+                let layout = python::describe_layout(&spec).map_err(|e| python_error(env, e))?;
+                (None, layout)
+            }
         }
     };
+    let (obs_dim, action_dim, layout) = layout;
     demos_fit(
         (obs_dim, action_dim, &layout),
         (set.obs_dim, set.action_dim, &set.state_layout),
     )
-    .map_err(refuse)
+    .map_err(refuse)?;
+    let Some(mut made) = made.filter(|_| try_states) else {
+        return Ok(());
+    };
+    match crate::replay::first_refused_state(made.as_mut(), &set.demos) {
+        None => Ok(()),
+        Some((demo, episode, t, why)) => Err(refuse(format!(
+            "demo {demo} (episode {episode}) state {t} is not a valid reset state: {why}"
+        ))),
+    }
 }
 
 /// The first way demos of (obs dim, action dim, state layout) `demos` differ from an env's.

@@ -86,7 +86,29 @@ fn ms3_set(dir: &Path) -> DemoSet {
     ];
     demos[2].reset.options =
         json!({"initial_state_dict": {"qpos": [0.5, -1.0]}, "reconfigure": true});
+    for demo in &mut demos {
+        unit_orientations(&layout, demo);
+    }
     set(&dir.join("demos.h5"), layout, demos)
+}
+
+/// Gives every actor and articulation root of `demo` a unit orientation (a rotation about z by
+/// a different angle in every state), as a simulator's states have.
+fn unit_orientations(layout: &StateLayout, demo: &mut Demo) {
+    let dim = demo.state_dim;
+    for (t, state) in demo.env_states.chunks_exact_mut(dim).enumerate() {
+        for e in layout.entries() {
+            if matches!(e.kind, StateKind::Actor | StateKind::Articulation) {
+                let half = 0.1 * t as f32;
+                state[e.offset + 3..e.offset + 7].copy_from_slice(&[
+                    half.cos(),
+                    0.0,
+                    0.0,
+                    half.sin(),
+                ]);
+            }
+        }
+    }
 }
 
 fn write_ms3(dir: &Path) -> DemoSet {
@@ -630,6 +652,36 @@ fn infinity_in_env_states_and_actions_is_refused() {
     assert!(
         err.contains("traj_3/actions has -inf at step 0, column 0"),
         "{err}"
+    );
+}
+
+/// An actor's orientation that is not a unit quaternion is damage: refused at load, naming the
+/// dataset, the step, the quaternion and its norm.
+#[test]
+fn an_orientation_that_is_not_a_unit_quaternion_is_refused() {
+    // traj_1's cube is [6, 13]: step 2's quaternion is columns 3..7; scaled to norm 2.
+    let (_dir, path) = broken(|f| {
+        let ds = f.dataset("traj_1/env_states/actors/cube").unwrap();
+        let mut data = ds.read_raw::<f32>().unwrap();
+        for q in &mut data[2 * 13 + 3..2 * 13 + 7] {
+            *q *= 2.0;
+        }
+        ds.write_raw(&data[..]).unwrap();
+    });
+    let err = load_err(&path);
+    assert!(
+        matches!(err, DemoError::NotUnitQuaternion { step: 2, .. }),
+        "{err}"
+    );
+    let text = err.to_string();
+    assert!(
+        text.starts_with(&format!(
+            "{}: traj_1/env_states/actors/cube has orientation (w, x, y, z) [",
+            path.display()
+        )) && text.ends_with(
+            "at step 2, of norm 2: an orientation must be a unit quaternion (norm within 0.001 of 1)"
+        ),
+        "{text}"
     );
 }
 

@@ -13,8 +13,16 @@
 //! the Dense bias. The matrix products of the backward are written out: dW = hᵀ·dz and
 //! dh = dz·Wᵀ.
 //!
-//! Only contiguous CPU tensors in f32 or f64 with fp32 matmuls take this path;
+//! With `sac.matmul_precision: bf16` the hidden layers' products, forward and backward, round
+//! both operands to bfloat16 and return the product in f32, as [`affine`] and its autograd
+//! backward do (AMX or AVX512-BF16 run these several times faster than f32 products); the
+//! output layer's dot products and every elementwise pass stay in f32, where the libtorch path
+//! rounds the output layer's operands to bf16 too (docs/LEARNER.md "bf16 matmuls").
+//!
+//! Only contiguous CPU tensors in f32 or f64 (f32 for bf16 matmuls) take this path;
 //! [`critic_loss_and_grads`] says `None` otherwise and the caller runs autograd.
+//!
+//! [`affine`]: crate::nets::affine
 use num_traits::Float;
 use tch::kind::Element;
 use tch::{Device, Kind, Tensor};
@@ -33,7 +41,7 @@ pub struct CriticGrads {
 /// `weight · mean_{k,b} (Q_k(obs_b, action_b) − target_b)²` over the ensemble's members and
 /// its gradients with respect to every parameter (spec 5.3 "Critic" step 4; `weight` is a
 /// shard's E_s/E, see [`crate::members`]), or `None` where the fused path does not apply: not
-/// the CPU, not f32 or f64, bf16 matmuls.
+/// the CPU, not f32 or f64, or bf16 matmuls on f64 parameters.
 pub fn critic_loss_and_grads(
     critic: &CriticEnsemble,
     obs: &Tensor,
@@ -41,11 +49,7 @@ pub fn critic_loss_and_grads(
     target: &Tensor,
     weight: f64,
 ) -> Option<CriticGrads> {
-    let applies = critic.fp32_matmuls()
-        && [obs, action, target]
-            .iter()
-            .all(|t| t.device() == Device::Cpu && t.kind() == critic.kind());
-    if !applies {
+    if !applies(critic, &[obs, action, target]) {
         return None;
     }
     tch::no_grad(|| match critic.kind() {
@@ -55,10 +59,43 @@ pub fn critic_loss_and_grads(
     })
 }
 
+/// Whether the fused path takes these inputs: CPU tensors of the parameters' kind, f32 or f64
+/// with fp32 matmuls, f32 with bf16 ones.
+fn applies(critic: &CriticEnsemble, inputs: &[&Tensor]) -> bool {
+    let kind = critic.kind();
+    let precision_fits = critic.fp32_matmuls() || kind == Kind::Float;
+    precision_fits
+        && inputs
+            .iter()
+            .all(|t| t.device() == Device::Cpu && t.kind() == kind)
+}
+
+/// The operand of a product in the critic's matmul precision: itself, or rounded to bfloat16.
+fn operand(t: &Tensor, critic: &CriticEnsemble) -> Tensor {
+    if critic.fp32_matmuls() {
+        t.shallow_clone()
+    } else {
+        t.to_kind(Kind::BFloat16)
+    }
+}
+
+/// `a · b` of two [`operand`]s (batched over the leading dim when either is 3-D), in `kind`.
+fn product(a: &Tensor, b: &Tensor, kind: Kind) -> Tensor {
+    let p = a.matmul(b);
+    if p.kind() == kind {
+        p
+    } else {
+        p.to_kind(kind)
+    }
+}
+
 /// What one hidden layer's forward keeps for the backward.
 struct Saved {
-    /// The layer's input: the shared `[B, I]` input for the first layer, else `[E, B, H]`.
+    /// The layer's input as a matmul [`operand`]: the shared `[B, I]` input for the first
+    /// layer, else `[E, B, H]`.
     input: Tensor,
+    /// The layer's kernels as a matmul [`operand`], `[E, I, H]`.
+    kernel: Tensor,
     /// LayerNorm's normalised values x̂ `[E, B, H]` (without LayerNorm: unused, empty).
     xhat: Tensor,
     /// 1/√(var + ε) per row, `[E, B]` (without LayerNorm: empty).
@@ -106,11 +143,7 @@ pub fn critic_action_grad(
     action: &Tensor,
     coefficient: f64,
 ) -> Option<(Tensor, Tensor)> {
-    let applies = critic.fp32_matmuls()
-        && [obs, action]
-            .iter()
-            .all(|t| t.device() == Device::Cpu && t.kind() == critic.kind());
-    if !applies {
+    if !applies(critic, &[obs, action]) {
         return None;
     }
     fn run<T: Element + Float>(
@@ -164,16 +197,24 @@ impl<'a, T: Element + Float> Forward<'a, T> {
         let eps = T::from(critic.layer_norm_eps()).expect("ε fits the float type");
         let mut saved: Vec<Saved> = Vec::with_capacity(layers.hidden.len());
         for (i, dense) in layers.hidden.iter().enumerate() {
-            let input = match saved.last() {
-                Some(prev) => prev.out.shallow_clone(),
-                None => x.shallow_clone(),
-            };
+            let input = operand(
+                match saved.last() {
+                    Some(prev) => &prev.out,
+                    None => &x,
+                },
+                critic,
+            );
+            let kernel = operand(&dense.w, critic);
             let batched = if i == 0 {
                 input.expand([members, rows, input.size()[1]], false)
             } else {
                 input.shallow_clone()
             };
-            let mut z = dense.b.baddbmm(&batched, &dense.w, 1.0, 1.0).contiguous();
+            let mut z = if critic.fp32_matmuls() {
+                dense.b.baddbmm(&batched, &kernel, 1.0, 1.0).contiguous()
+            } else {
+                (product(&batched, &kernel, x.kind()) + &dense.b).contiguous()
+            };
             let width = z.size()[2] as usize;
             let per_member = rows as usize * width;
             match layers.norms.get(i) {
@@ -202,6 +243,7 @@ impl<'a, T: Element + Float> Forward<'a, T> {
                     }
                     saved.push(Saved {
                         input,
+                        kernel,
                         xhat: z,
                         rstd,
                         out,
@@ -211,6 +253,7 @@ impl<'a, T: Element + Float> Forward<'a, T> {
                     let _ = z.relu_();
                     saved.push(Saved {
                         input,
+                        kernel,
                         xhat: Tensor::empty([0], (z.kind(), Device::Cpu)),
                         rstd: Tensor::empty([0], (z.kind(), Device::Cpu)),
                         out: z,
@@ -344,26 +387,26 @@ impl<'a, T: Element + Float> Forward<'a, T> {
                     }
                 }
             }
-            let dz = dh;
+            let dz = operand(&dh, self.critic);
             if params {
                 let kernel_grad = if i == 0 {
-                    layer.input.tr().matmul(&dz)
+                    product(&layer.input.tr(), &dz, kind)
                 } else {
-                    layer.input.transpose(1, 2).bmm(&dz)
+                    product(&layer.input.transpose(1, 2), &dz, kind)
                 };
                 grads.push((format!("hidden{i}.kernel"), kernel_grad));
                 grads.push((format!("hidden{i}.bias"), dbias));
             }
             dh = if i > 0 {
-                dz.bmm(&dense.w.transpose(1, 2)).contiguous()
+                product(&dz, &layer.kernel.transpose(1, 2), kind).contiguous()
             } else {
                 if let Wanted::Input { from } = wanted {
                     // dL/dx[from..] = Σ_k dz_k · W_k[from..]ᵀ: only the input columns asked for.
                     let fan_in = dense.w.size()[1];
-                    let w = dense.w.narrow(1, from, fan_in - from).transpose(1, 2);
-                    input_grad = Some(dz.bmm(&w).sum_dim_intlist(0, false, None));
+                    let w = layer.kernel.narrow(1, from, fan_in - from).transpose(1, 2);
+                    input_grad = Some(product(&dz, &w, kind).sum_dim_intlist(0, false, None));
                 }
-                dz
+                dh
             };
         }
         grads.sort_by(|a, b| a.0.cmp(&b.0));
@@ -724,6 +767,16 @@ mod tests {
         layer_norm: bool,
         widths: &[u32],
     ) -> (nn::VarStore, CriticEnsemble) {
+        critic_in(kind, members, layer_norm, widths, MatmulPrecision::Fp32)
+    }
+
+    fn critic_in(
+        kind: Kind,
+        members: i64,
+        layer_norm: bool,
+        widths: &[u32],
+        precision: MatmulPrecision,
+    ) -> (nn::VarStore, CriticEnsemble) {
         let mut vs = nn::VarStore::new(Device::Cpu);
         vs.set_kind(kind);
         let net = NetworkConfig {
@@ -732,14 +785,7 @@ mod tests {
             ..NetworkConfig::default()
         };
         let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let critic = CriticEnsemble::new(
-            &vs.root(),
-            &mut rng,
-            11,
-            members,
-            &net,
-            MatmulPrecision::Fp32,
-        );
+        let critic = CriticEnsemble::new(&vs.root(), &mut rng, 11, members, &net, precision);
         tch::manual_seed(3);
         tch::no_grad(|| {
             for (_, p) in vs.variables() {
@@ -821,7 +867,8 @@ mod tests {
         }
     }
 
-    /// bf16 matmuls, or inputs on another kind than the parameters: not this path.
+    /// Inputs on another kind than the parameters, or bf16 matmuls on f64 parameters: not this
+    /// path.
     #[test]
     fn other_precisions_and_kinds_are_left_to_autograd() {
         let (_vs, full) = critic(Kind::Float, 2, true, &[8]);
@@ -829,6 +876,49 @@ mod tests {
         let action = Tensor::randn([4, 3], (Kind::Double, Device::Cpu));
         let target = Tensor::randn([4], (Kind::Double, Device::Cpu));
         assert!(critic_loss_and_grads(&full, &obs, &action, &target, 1.0).is_none());
+        let (_vs, f64_bf16) = critic_in(Kind::Double, 2, true, &[8], MatmulPrecision::Bf16);
+        assert!(critic_loss_and_grads(&f64_bf16, &obs, &action, &target, 1.0).is_none());
+        assert!(critic_action_grad(&f64_bf16, &obs, &action, 1.0).is_none());
+    }
+
+    /// With bf16 matmuls the fused loss, Q and gradients stay within bf16's rounding of
+    /// autograd's through the bf16 products (8 significant bits: a few 1e-3 relative per
+    /// product; the fused output layer stays f32, autograd's rounds it too), and the same
+    /// holds for the action gradient of an actor update.
+    #[test]
+    fn bf16_matmuls_stay_within_bf16_rounding_of_autograds() {
+        let tol = 3e-2;
+        let (_vs, full) = critic_in(Kind::Float, 4, true, &[64, 48], MatmulPrecision::Bf16);
+        let rows = 32;
+        let obs = Tensor::randn([rows, 8], (Kind::Float, Device::Cpu));
+        let action = Tensor::randn([rows, 3], (Kind::Float, Device::Cpu));
+        let target = Tensor::randn([rows], (Kind::Float, Device::Cpu));
+        let shard = full.shard(0, 4, true);
+        let (loss, grads) = autograd(&shard, &obs, &action, &target, 0.7);
+        let fused = critic_loss_and_grads(&shard, &obs, &action, &target, 0.7).unwrap();
+        let got = fused.loss.double_value(&[]);
+        assert!(
+            (got - loss).abs() / loss.abs() < tol,
+            "loss {got} vs {loss}"
+        );
+        assert_eq!(fused.grads.len(), grads.len());
+        for (got, want) in fused.grads.iter().zip(&grads) {
+            assert_eq!(got.kind(), Kind::Float);
+            let scale = want.abs().max().double_value(&[]).max(1e-3);
+            let diff = (got - want).abs().max().double_value(&[]) / scale;
+            assert!(diff < tol, "{diff:e}");
+        }
+        let frozen = full.shard(0, 4, false);
+        let action = action.set_requires_grad(true);
+        let q = frozen.forward(&obs, &action);
+        let want = Tensor::run_backward(&[&(q.sum(None) * -0.01)], &[&action], false, false);
+        let (got_q, got) = critic_action_grad(&frozen, &obs, &action.detach(), -0.01).unwrap();
+        let scale = want[0].abs().max().double_value(&[]);
+        let diff = (&got - &want[0]).abs().max().double_value(&[]) / scale;
+        assert!(diff < tol, "action gradient {diff:e}");
+        let q_scale = q.abs().max().double_value(&[]).max(1.0);
+        let q_diff = (&got_q - q.detach()).abs().max().double_value(&[]) / q_scale;
+        assert!(q_diff < tol, "q {q_diff:e}");
     }
 
     /// One row of 4 features by hand: z = (1, 2, 3, 6), mean 3, var (4 + 1 + 0 + 9)/4 = 3.5,

@@ -167,6 +167,14 @@ async fn run(args: Args) -> Result<()> {
             member_threads,
             "SAC updates on the CPU"
         );
+        if cfg.sac.matmul_precision == rfcl_core::config::MatmulPrecision::Bf16 {
+            match rfcl_learner::runtime::native_bf16().as_slice() {
+                [] => tracing::warn!(
+                    "sac.matmul_precision is bf16 but this CPU has neither AMX nor AVX512-BF16: libtorch emulates bf16 products, slower than fp32 (docs/LEARNER.md, \"bf16 matmuls\")"
+                ),
+                native => tracing::info!(?native, "bf16 matmuls run natively"),
+            }
+        }
         if applied.threads > 1 && std::env::var_os("OMP_WAIT_POLICY").is_none() {
             tracing::info!(
                 "OMP_WAIT_POLICY is not set: OpenMP threads spin while idle; set OMP_WAIT_POLICY=PASSIVE when actors share these cores (docs/LEARNER.md, \"Threads\")"

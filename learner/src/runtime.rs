@@ -61,8 +61,50 @@ pub fn tune_allocator() -> bool {
     }
 }
 
+/// The instruction sets that run bf16 matrix products natively on this CPU, by Linux's
+/// `/proc/cpuinfo` names (`amx_bf16`, `avx512_bf16`); empty where there are none, or where
+/// the file cannot be read (then libtorch emulates bf16 products in f32, slower than f32 itself).
+pub fn native_bf16() -> Vec<&'static str> {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .map(|text| native_bf16_in(&text))
+        .unwrap_or_default()
+}
+
+/// [`native_bf16`] of a `/proc/cpuinfo` text: the bf16 instruction sets its first `flags` line
+/// names.
+pub fn native_bf16_in(cpuinfo: &str) -> Vec<&'static str> {
+    let flags: Vec<&str> = cpuinfo
+        .lines()
+        .find_map(|line| {
+            let (key, value) = line.split_once(':')?;
+            (key.trim() == "flags").then(|| value.split_whitespace().collect())
+        })
+        .unwrap_or_default();
+    ["amx_bf16", "avx512_bf16"]
+        .into_iter()
+        .filter(|name| flags.contains(name))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
+    /// A Sapphire Rapids line has both, a Zen 4 line AVX512-BF16 only, a Zen 3 line neither;
+    /// `amx_bf16` must be a whole flag, not a prefix of another.
+    #[test]
+    fn native_bf16_reads_the_flags_line() {
+        let cpu = |flags: &str| format!("processor\t: 0\nmodel name\t: X\nflags\t\t: {flags}\n");
+        assert_eq!(
+            super::native_bf16_in(&cpu("fpu avx512f amx_bf16 amx_tile avx512_bf16 amx_int8")),
+            ["amx_bf16", "avx512_bf16"]
+        );
+        assert_eq!(
+            super::native_bf16_in(&cpu("fpu avx2 avx512f avx512_bf16")),
+            ["avx512_bf16"]
+        );
+        assert!(super::native_bf16_in(&cpu("fpu avx2 fma amx_bf16x")).is_empty());
+        assert!(super::native_bf16_in("no flags here").is_empty());
+    }
+
     #[test]
     fn configure_cpu_sets_threads_and_tunes_glibc() {
         let applied = super::configure_cpu(1);

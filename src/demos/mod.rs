@@ -26,8 +26,9 @@ pub struct ReplayArgs {
     /// success. Exits 1 when a demo fails.
     #[arg(long)]
     pub replay: bool,
-    /// The run config whose env replays the demos (needed for every env but PointMaze).
-    #[arg(long, requires = "replay")]
+    /// The run config whose env replays the demos, or without --replay tries every state as a
+    /// reset state (needed for every env but PointMaze).
+    #[arg(long)]
     pub config: Option<PathBuf>,
 }
 
@@ -136,10 +137,12 @@ pub fn run(command: DemosCommand) -> Result<ExitCode> {
             let demos = rfcl_core::demo::DemoSet::load(&file)?;
             print!("{}", demos.summary());
             if !replay.replay {
-                return Ok(match replay::reset_states(&demos)? {
-                    true => ExitCode::SUCCESS,
-                    false => ExitCode::FAILURE,
-                });
+                return Ok(
+                    match replay::reset_states(&demos, replay.config.as_deref())? {
+                        true => ExitCode::SUCCESS,
+                        false => ExitCode::FAILURE,
+                    },
+                );
             }
             match replay::check(&demos, replay.config.as_deref())? {
                 true => Ok(ExitCode::SUCCESS),

@@ -10,22 +10,32 @@ use rfcl_actor::replay::{
 use rfcl_actor::Env;
 use rfcl_core::demo::DemoSet;
 
-/// Without `--replay`, for the envs rfcl checks natively (PointMaze): every state of every demo is
-/// tried as a reset state, and the first refused one named; true when all are valid (and for the
-/// Python suites, whose states only their simulator can judge: `--replay` does).
-pub fn reset_states(set: &DemoSet) -> Result<bool> {
-    if set.env_id.as_deref() != Some(pointmaze::ENV_ID) {
-        return Ok(true);
-    }
-    match rfcl_actor::replay::first_refused_state(&mut PointMaze::new(0), &set.demos)? {
-        None => {
+/// Without `--replay`: every state of every demo tried as a reset state in the env `config`
+/// describes (PointMaze needs none), after the dims and state layout are found to fit, and the
+/// first refused one named; true when all are valid. A Python-suite file without `config` is
+/// not checked, and says so.
+pub fn reset_states(set: &DemoSet, config: Option<&Path>) -> Result<bool> {
+    let env = match (config, set.env_id.as_deref()) {
+        (Some(path), _) => rfcl_core::config::resolve_file(path, &[])?.env,
+        (None, Some(pointmaze::ENV_ID)) => rfcl_core::config::EnvConfig::default(),
+        (None, _) => {
+            println!(
+                "reset states not checked: pass --config CFG, the run config whose env takes \
+                 them, to try each in its simulator"
+            );
+            return Ok(true);
+        }
+    };
+    match rfcl_actor::suite::check_demo_states(&env, set) {
+        Ok(()) => {
             println!("every state of every demo is a valid reset state");
             Ok(true)
         }
-        Some((demo, episode, t, why)) => {
-            println!("demo {demo} (episode {episode}) state {t} is not a valid reset state: {why}");
+        Err(e @ rfcl_actor::suite::SuiteError::DemosDoNotFit { .. }) => {
+            println!("{e}");
             Ok(false)
         }
+        Err(e) => Err(e).context("making the env to try the demo states in"),
     }
 }
 

@@ -115,6 +115,22 @@ pub enum DemoError {
         column: usize,
         value: f32,
     },
+
+    /// An MS3 actor's or articulation root's orientation that is not a unit quaternion: no
+    /// simulator state has one, so the file is damaged or was written by hand.
+    #[error(
+        "{}: traj_{episode_id}/{field} has orientation (w, x, y, z) {quaternion:?} at step {step}, of norm {norm}: an orientation must be a unit quaternion (norm within {tolerance} of 1)",
+        path.display()
+    )]
+    NotUnitQuaternion {
+        path: PathBuf,
+        episode_id: u64,
+        field: String,
+        step: usize,
+        quaternion: [f32; 4],
+        norm: f32,
+        tolerance: f32,
+    },
 }
 
 impl DemoError {

@@ -15,6 +15,10 @@ use super::{Demo, DemoError, DemoSet, StateKind, StateLayout, SuccessSource};
 /// The 8-byte HDF5 superblock signature.
 const SIGNATURE: &[u8; 8] = b"\x89HDF\r\n\x1a\n";
 
+/// How far from 1 the norm of a stored orientation may be. A simulator's own quaternions are unit
+/// to float precision (about 1e-7 in ManiSkill3's demos); anything further off is damage.
+const QUATERNION_NORM_TOLERANCE: f32 = 1e-3;
+
 pub(super) fn load(path: &Path) -> Result<DemoSet, DemoError> {
     let file = open(path)?;
     let sidecar = sidecar::read(path)?;
@@ -384,8 +388,32 @@ impl TrajReader<'_> {
                 m.cols
             )));
         }
+        if matches!(kind, StateKind::Actor | StateKind::Articulation) {
+            self.unit_orientations(&m, &shown)?;
+        }
         parts.push((rel.to_owned(), kind, m.cols));
         leaves.push((shown, m));
+        Ok(())
+    }
+
+    /// Every row's orientation (columns 3..7 of an actor's or articulation's state) is a unit
+    /// quaternion, within [`QUATERNION_NORM_TOLERANCE`].
+    fn unit_orientations(&self, m: &Matrix, shown: &str) -> Result<(), DemoError> {
+        for (step, row) in m.data.chunks_exact(m.cols).enumerate() {
+            let quaternion: [f32; 4] = row[3..7].try_into().expect("13 or more columns");
+            let norm = quaternion.iter().map(|q| q * q).sum::<f32>().sqrt();
+            if (norm - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
+                return Err(DemoError::NotUnitQuaternion {
+                    path: self.path.to_path_buf(),
+                    episode_id: self.episode_id,
+                    field: shown.to_owned(),
+                    step,
+                    quaternion,
+                    norm,
+                    tolerance: QUATERNION_NORM_TOLERANCE,
+                });
+            }
+        }
         Ok(())
     }
 
