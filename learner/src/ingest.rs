@@ -235,47 +235,6 @@ impl IngestCounters {
             unused_records: get(&self.unused_records),
         }
     }
-
-    /// Prometheus exposition lines (counters, `rfcl_learner_ingest_*_total{transport=...}`),
-    /// for a `/metrics` endpoint and for logs.
-    pub fn lines(&self) -> String {
-        let mut out = String::new();
-        for (name, help, pick) in [
-            (
-                "records",
-                "Transition records validated and queued, per transport",
-                (|c: &TransportCounts| &c.records) as fn(&TransportCounts) -> &AtomicU64,
-            ),
-            (
-                "batches",
-                "Transition batches validated and queued, per transport",
-                |c| &c.batches,
-            ),
-            (
-                "refused_batches",
-                "Malformed transition batches refused, per transport",
-                |c| &c.refused_batches,
-            ),
-            (
-                "lost_records",
-                "Transition records missing between one sender's batches, per transport",
-                |c| &c.lost_records,
-            ),
-        ] {
-            let metric = format!("rfcl_learner_ingest_{name}_total");
-            out.push_str(&format!(
-                "# HELP {metric} {help}.\n# TYPE {metric} counter\n"
-            ));
-            for t in [Transport::Grpc, Transport::Shm] {
-                out.push_str(&format!(
-                    "{metric}{{transport=\"{}\"}} {}\n",
-                    t.as_str(),
-                    pick(self.of(t)).load(Ordering::Relaxed)
-                ));
-            }
-        }
-        out
-    }
 }
 
 impl std::fmt::Display for IngestTotals {
@@ -483,7 +442,7 @@ mod tests {
     }
 
     #[test]
-    fn transports_are_counted_apart_with_prometheus_names() {
+    fn transports_are_counted_apart() {
         let c = IngestCounters::new();
         c.queued(Transport::Shm, 64);
         c.queued(Transport::Shm, 10);
@@ -494,19 +453,6 @@ mod tests {
         assert_eq!((t.shm_records, t.shm_batches), (74, 2));
         assert_eq!((t.grpc_records, t.grpc_batches), (5, 1));
         assert_eq!((t.shm_lost_records, t.refused_batches), (3, 1));
-        let text = c.lines();
-        assert!(
-            text.contains("rfcl_learner_ingest_records_total{transport=\"shm\"} 74\n"),
-            "{text}"
-        );
-        assert!(
-            text.contains("rfcl_learner_ingest_records_total{transport=\"grpc\"} 5\n"),
-            "{text}"
-        );
-        assert!(
-            text.contains("# TYPE rfcl_learner_ingest_lost_records_total counter"),
-            "{text}"
-        );
         assert!(t
             .to_string()
             .contains("ingest_records_total{transport=\"shm\"}=74"));
