@@ -80,7 +80,7 @@ pub fn check_demos_fit(env: &EnvConfig, set: &DemoSet) -> Result<(), SuiteError>
 
 /// [`check_demos_fit`], and every state of every demo tried as a reset state (after its demo's
 /// seed and options) in the env's own simulator, whatever its suite: one reset per state, which
-/// for a Python suite can take minutes (PegInsertionSide-v1 rebuilds its scene at each, ~170 ms).
+/// for a Python suite can take a minute (PegInsertionSide-v1 rebuilds its scene at each, ~170 ms).
 /// What `rfcl demos inspect --config` checks.
 pub fn check_demo_states(env: &EnvConfig, set: &DemoSet) -> Result<(), SuiteError> {
     check_fit(env, set, true)
