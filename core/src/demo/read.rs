@@ -74,6 +74,9 @@ pub(super) fn load(path: &Path) -> Result<DemoSet, DemoError> {
     let state_layout = layout.ok_or_else(|| DemoError::NoTrajectories {
         path: path.to_path_buf(),
     })?;
+    // After the whole file is read, so that a file that crashes the reader further on still
+    // does (the crash is what `rfcl demos inspect`'s child process turns into one error line).
+    unit_orientations(path, &state_layout, &demos)?;
     let (env_info, control_mode, sidecar_path) = match sidecar {
         Some(s) => {
             let mode = s.env_info["env_kwargs"]["control_mode"]
@@ -95,6 +98,37 @@ pub(super) fn load(path: &Path) -> Result<DemoSet, DemoError> {
         state_layout,
         demos,
     })
+}
+
+/// Every MS3 actor's and articulation root's orientation in every state (columns 3..7 of its
+/// entry) is a unit quaternion, within [`QUATERNION_NORM_TOLERANCE`].
+fn unit_orientations(path: &Path, layout: &StateLayout, demos: &[Demo]) -> Result<(), DemoError> {
+    let posed: Vec<_> = layout
+        .entries()
+        .iter()
+        .filter(|e| matches!(e.kind, StateKind::Actor | StateKind::Articulation))
+        .collect();
+    for demo in demos {
+        for (step, state) in demo.env_states.chunks_exact(demo.state_dim).enumerate() {
+            for entry in &posed {
+                let at = entry.offset + 3;
+                let quaternion: [f32; 4] = state[at..at + 4].try_into().expect("4 values");
+                let norm = quaternion.iter().map(|q| q * q).sum::<f32>().sqrt();
+                if (norm - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
+                    return Err(DemoError::NotUnitQuaternion {
+                        path: path.to_path_buf(),
+                        episode_id: demo.episode_id,
+                        field: format!("env_states/{}", entry.name),
+                        step,
+                        quaternion,
+                        norm,
+                        tolerance: QUATERNION_NORM_TOLERANCE,
+                    });
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Opens `path` after checking that it exists and carries an HDF5 signature.
@@ -388,32 +422,8 @@ impl TrajReader<'_> {
                 m.cols
             )));
         }
-        if matches!(kind, StateKind::Actor | StateKind::Articulation) {
-            self.unit_orientations(&m, &shown)?;
-        }
         parts.push((rel.to_owned(), kind, m.cols));
         leaves.push((shown, m));
-        Ok(())
-    }
-
-    /// Every row's orientation (columns 3..7 of an actor's or articulation's state) is a unit
-    /// quaternion, within [`QUATERNION_NORM_TOLERANCE`].
-    fn unit_orientations(&self, m: &Matrix, shown: &str) -> Result<(), DemoError> {
-        for (step, row) in m.data.chunks_exact(m.cols).enumerate() {
-            let quaternion: [f32; 4] = row[3..7].try_into().expect("13 or more columns");
-            let norm = quaternion.iter().map(|q| q * q).sum::<f32>().sqrt();
-            if (norm - 1.0).abs() > QUATERNION_NORM_TOLERANCE {
-                return Err(DemoError::NotUnitQuaternion {
-                    path: self.path.to_path_buf(),
-                    episode_id: self.episode_id,
-                    field: shown.to_owned(),
-                    step,
-                    quaternion,
-                    norm,
-                    tolerance: QUATERNION_NORM_TOLERANCE,
-                });
-            }
-        }
         Ok(())
     }
 
