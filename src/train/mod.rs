@@ -9,10 +9,9 @@
 //! * a dead actor is respawned, and said so; a dead curriculum server or learner (any signal, any
 //!   exit status but the learner's 0) is restarted on its port from its last snapshot or
 //!   checkpoint, after a backoff (1, 2, 4, ... s), and the log, `train_progress.json` and the
-//!   summary say which process, why and what was rolled back; more than
-//!   [`SERVICE_RESTARTS_MAX`] deaths of one service within [`SERVICE_RESTART_WINDOW_S`] stop the
-//!   run with its error (the last lines of its log). The actors and the other service reconnect
-//!   by themselves;
+//!   summary say which process, why and what was rolled back; a service or actor that keeps dying
+//!   stops the run with its error (the last lines of its log). The actors and the other service
+//!   reconnect by themselves;
 //! * the run ends when the learner exits after its budget, or when the mean success of the last 5
 //!   evaluations reaches `service.stop_at_eval_success`; Ctrl-C / SIGTERM stops it cleanly, and
 //!   `--resume RUN_DIR` continues it;
@@ -22,33 +21,40 @@
 //! Files in the run directory beside the services' own: `config.yml` (resolved), `logs/<child>.log`,
 //! `processes.json` (while a session runs: the services' addresses, every child's name and pid),
 //! `train_progress.json` (wall time of earlier sessions, eval completion times), `summary.json`.
-pub mod children;
+//!
+//! The parts: [`supervisor`] keeps the process table (start, reap, respawn, stop); [`policy`]
+//! decides, purely, what a death or a silence leads to; [`monitor`] polls the services' Health and
+//! GetState; [`display`] draws the bar and writes the lines; [`finish`] writes the summary;
+//! [`progress`] is the run's bookkeeping across sessions. [`Session`] joins them in one loop.
+mod children;
+mod display;
+mod finish;
+mod monitor;
+mod policy;
 pub mod progress;
+mod supervisor;
 
-use std::ffi::OsString;
-use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::config::{resolve_file, to_yaml, RunConfig};
-use rfcl_core::final_counters::{FinalCounters, LearnerCounts, FINAL_COUNTERS_FILE};
 use rfcl_core::run_lock::RunDirLock;
-use rfcl_core::run_state::RunState;
-use rfcl_proto::auth::{self, AuthChannel, ClientAuth, Token};
-use rfcl_proto::v1;
+use rfcl_proto::auth::{self, ClientAuth, Token};
 use rfcl_proto::v1::curriculum_client::CurriculumClient;
 use rfcl_proto::v1::learner_client::LearnerClient;
 use rfcl_runtime::Signals;
-use tonic::transport::Channel;
 
-use children::{describe, find_setpriv, Child, Launcher};
+use children::{describe, find_setpriv, Launcher};
+use display::{eval_line, silence_line, status, Bar};
+use finish::{read_final_counters, Outcome};
+pub use monitor::fetch_run_state;
+use monitor::{channel, Monitor};
+use policy::{Service, ServiceDecision, SilenceAction, SERVICE_RESTART_WINDOW_S};
 use progress::{
-    restart_delay_s, split_envs, summarize, CompleteEval, CountersSource, Ending, EvalTracker,
-    LearnerCounters, RespawnLimiter, RolledBack, RunProgress, RunShape, ServiceRestart, Silence,
-    SilenceAction, Summary,
+    CompleteEval, Ending, EvalTracker, RolledBack, RunProgress, ServiceRestart, Summary,
 };
+use supervisor::{ActorExit, ServiceInputs, Supervisor};
 
 /// How long a service may take to print its ready line (the learner loads demos and may restore
 /// a replay buffer from a checkpoint).
@@ -63,11 +69,6 @@ const LEARNER_GRACE: Duration = Duration::from_secs(120);
 const SERVER_GRACE: Duration = Duration::from_secs(20);
 /// How long the end of a run waits for the next episode of the final policy's evaluation.
 const FINAL_EVAL_PATIENCE: Duration = Duration::from_secs(60);
-/// A service silent this long is said to be so (it is killed at `service.hang_timeout_s`).
-const SILENCE_WARN_S: f64 = 15.0;
-/// A service that dies more often than this within the window cannot run: the run stops.
-pub const SERVICE_RESTARTS_MAX: usize = 3;
-pub const SERVICE_RESTART_WINDOW_S: f64 = 600.0;
 
 /// What `rfcl train` was asked to do.
 #[derive(Debug, Clone)]
@@ -277,76 +278,19 @@ fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
-/// An actor process and how to restart it.
-struct ActorProc {
-    id: u32,
-    eval: bool,
-    envs: u32,
-    child: Option<Child>,
-    /// Exited by itself with success (the curriculum finished): not respawned.
-    done: bool,
-}
-
-/// The two services `rfcl train` restarts when they die.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Service {
-    Curriculum,
-    Learner,
-}
-
-impl Service {
-    /// The child's name, which is also its binary's.
-    fn name(self) -> &'static str {
-        match self {
-            Service::Curriculum => "curriculum-server",
-            Service::Learner => "learner",
-        }
-    }
-
-    fn id(self) -> u32 {
-        self as u32
-    }
-
-    /// What it restarts from.
-    fn saved_state(self) -> &'static str {
-        match self {
-            Service::Curriculum => "snapshot",
-            Service::Learner => "checkpoint",
-        }
-    }
-}
-
-/// The processes of a running session and what is known of them.
+/// A running session: the process table, what is known of the services, the display, and the
+/// run's progress. Its loop ([`Session::supervise`]) turns what the monitor sees into the
+/// supervisor's actions, as the restart policy decides.
 struct Session {
     prep: Prepared,
-    launcher: Launcher,
-    server: Child,
-    learner: Option<Child>,
-    /// How each service is started again: on the port it had, from the run directory (which
-    /// holds its snapshot or checkpoint).
-    server_args: Vec<OsString>,
-    learner_args: Vec<OsString>,
-    service_deaths: RespawnLimiter,
-    learner_addr: String,
-    curriculum_addr: String,
-    dashboard: String,
-    actors: Vec<ActorProc>,
-    curriculum: CurriculumClient<AuthChannel>,
-    learner_client: LearnerClient<AuthChannel>,
-    started: Instant,
-    evals: EvalTracker,
-    counters: LearnerCounters,
-    last_view: Option<RunState>,
-    respawns: RespawnLimiter,
+    supervisor: Supervisor,
+    monitor: Monitor,
     bar: Bar,
-    updates_per_s: f64,
-    last_health: Option<(Instant, u64)>,
+    started: Instant,
     /// The pid of a learner that ended the run by exiting by itself.
     learner_exited: Option<u32>,
-    /// How long each service has not answered, and the one killed for it (the cause of its
+    /// The service killed for not answering, and how long it had been silent (the cause of its
     /// restart).
-    server_silence: Silence,
-    learner_silence: Silence,
     killed_silent: Option<(Service, f64)>,
 }
 
@@ -421,212 +365,50 @@ fn run_token(run_dir: &Path) -> Result<Token> {
     Ok(token)
 }
 
-fn os(args: &[&str]) -> Vec<OsString> {
-    args.iter().map(OsString::from).collect()
-}
-
 impl Session {
     async fn start(prep: Prepared, launcher: Launcher) -> Result<Session> {
-        let cfg = &prep.cfg;
-        let run_dir = prep.run_dir.as_os_str().to_owned();
-        let config = prep.config_path.as_os_str().to_owned();
-        let demos = prep.demos.as_os_str().to_owned();
-
-        // Curriculum server.
-        let server_args = |port: &str, dashboard_port: &str, resume: bool| {
-            let mut args = vec![
-                "--config".into(),
-                config.clone(),
-                "--demos".into(),
-                demos.clone(),
-            ];
-            args.extend(os(&["--port", port, "--dashboard-port", dashboard_port]));
-            args.push(if resume { "--resume" } else { "--run-dir" }.into());
-            args.push(run_dir.clone());
-            args
-        };
-        let mut server = launcher.spawn(
-            "curriculum-server",
-            "curriculum-server",
-            server_args(
-                &cfg.service.curriculum_port.to_string(),
-                &cfg.service.dashboard_port.to_string(),
-                prep.resume,
-            ),
-        )?;
-        let line = server.ready_line(READY_TIMEOUT).await?;
-        let (Some(curriculum_addr), Some(dashboard)) =
-            (line.field("grpc"), line.field("dashboard"))
-        else {
-            bail!("unexpected ready line from the curriculum server: {line}");
-        };
-        let (curriculum_addr, dashboard) = (curriculum_addr.to_owned(), dashboard.to_owned());
-        let curriculum_url = format!("http://{curriculum_addr}");
-        // A restarted server resumes from the run directory's snapshot on the same ports, where
-        // the learner and the actors look for it.
-        let server_args = server_args(
-            &port_of(&curriculum_addr)?.to_string(),
-            &port_of(&dashboard)?.to_string(),
-            false,
+        let token = launcher.token.clone();
+        let (mut supervisor, learner_line) = Supervisor::start(
+            ServiceInputs {
+                cfg: &prep.cfg,
+                run_dir: &prep.run_dir,
+                config_path: &prep.config_path,
+                demos: &prep.demos,
+                learner_threads: prep.learner_threads,
+                resume: prep.resume,
+            },
+            launcher,
+        )
+        .await?;
+        let addrs = supervisor.addrs.clone();
+        println!("dashboard: {}", addrs.dashboard);
+        eprintln!(
+            "curriculum server at {}, learner at {}",
+            addrs.curriculum, addrs.learner
         );
-
-        // Learner.
-        let learner_args = |port: &str, resume: bool| {
-            let mut args = vec![
-                "--config".into(),
-                config.clone(),
-                "--demos".into(),
-                demos.clone(),
-            ];
-            args.extend(os(&[
-                "--curriculum",
-                &curriculum_url,
-                "--port",
-                port,
-                "--threads",
-                &prep.learner_threads.to_string(),
-                // Prometheus /metrics on a free port (its URL is on the ready line).
-                "--metrics-port",
-                "0",
-            ]));
-            args.push(if resume { "--resume" } else { "--run-dir" }.into());
-            args.push(run_dir.clone());
-            args
-        };
-        let mut learner = launcher.spawn(
-            "learner",
-            "learner",
-            learner_args(&cfg.service.learner_port.to_string(), prep.resume),
-        )?;
-        let line = learner.ready_line(READY_TIMEOUT).await?;
-        let Some(learner_addr) = line.field("grpc").map(str::to_owned) else {
-            bail!("unexpected ready line from the learner: {line}");
-        };
-        let learner_args = learner_args(&port_of(&learner_addr)?.to_string(), false);
-        let learner_url = format!("http://{learner_addr}");
-        println!("dashboard: {dashboard}");
-        eprintln!("curriculum server at {curriculum_url}, learner at {learner_url}");
-        if let Some(metrics) = line.field("metrics") {
+        if let Some(metrics) = learner_line.field("metrics") {
             eprintln!("learner metrics (Prometheus): {metrics}");
         }
-
-        let client_auth = ClientAuth::plain(launcher.token.clone());
-        let curriculum = CurriculumClient::new(client_auth.wrap(channel(&curriculum_url)?))
+        let client_auth = ClientAuth::plain(token);
+        let curriculum = CurriculumClient::new(client_auth.wrap(channel(&addrs.curriculum)?))
             .max_decoding_message_size(64 << 20);
-        let learner_client = LearnerClient::new(client_auth.wrap(channel(&learner_url)?));
-
-        // Actors: ids 0.. for training, then the eval actors.
-        let s = &cfg.service;
-        let mut actors = Vec::new();
-        for (i, envs) in split_envs(cfg.env.num_envs, s.num_actors)
-            .into_iter()
-            .enumerate()
-        {
-            actors.push((i as u32, false, envs));
-        }
-        if s.num_eval_actors > 0 {
-            for (j, envs) in split_envs(cfg.eval_env.num_envs, s.num_eval_actors)
-                .into_iter()
-                .enumerate()
-            {
-                actors.push((s.num_actors + j as u32, true, envs));
-            }
-        }
-        let episodes_needed = rfcl_actor::eval::episodes_per_eval(cfg);
+        let learner = LearnerClient::new(client_auth.wrap(channel(&addrs.learner)?));
+        let episodes_needed = rfcl_actor::eval::episodes_per_eval(&prep.cfg);
         let evals = EvalTracker::new(episodes_needed, &prep.progress.evals);
-        let bar = Bar::new(cfg.train.steps);
-        let mut session = Session {
-            launcher,
-            server,
-            learner: Some(learner),
-            server_args,
-            learner_args,
-            service_deaths: RespawnLimiter::new(SERVICE_RESTARTS_MAX, SERVICE_RESTART_WINDOW_S),
-            learner_addr: learner_url,
-            curriculum_addr: curriculum_url,
-            dashboard,
-            actors: actors
-                .into_iter()
-                .map(|(id, eval, envs)| ActorProc {
-                    id,
-                    eval,
-                    envs,
-                    child: None,
-                    done: false,
-                })
-                .collect(),
-            curriculum,
-            learner_client,
+        supervisor.start_actors()?;
+        Ok(Session {
+            bar: Bar::new(prep.cfg.train.steps),
+            monitor: Monitor::new(curriculum, learner, evals),
+            supervisor,
             started: Instant::now(),
-            evals,
-            counters: LearnerCounters::default(),
-            last_view: None,
-            respawns: RespawnLimiter::new(5, 120.0),
-            bar,
-            updates_per_s: 0.0,
-            last_health: None,
             learner_exited: None,
-            server_silence: Silence::default(),
-            learner_silence: Silence::default(),
             killed_silent: None,
             prep,
-        };
-        for i in 0..session.actors.len() {
-            session.spawn_actor(i)?;
-        }
-        session.write_processes()?;
-        Ok(session)
-    }
-
-    fn spawn_actor(&mut self, index: usize) -> Result<()> {
-        let a = &self.actors[index];
-        let name = if a.eval {
-            format!("eval-actor-{}", a.id)
-        } else {
-            format!("actor-{}", a.id)
-        };
-        let mut args = os(&[
-            "--connect",
-            &self.learner_addr,
-            "--envs",
-            &a.envs.to_string(),
-            "--id",
-            &a.id.to_string(),
-        ]);
-        if a.eval {
-            args.push("--eval".into());
-        }
-        let child = self.launcher.spawn(&name, "actor", args)?;
-        self.actors[index].child = Some(child);
-        Ok(())
+        })
     }
 
     fn wall_s(&self) -> f64 {
         self.prep.progress.earlier_sessions_s + self.started.elapsed().as_secs_f64()
-    }
-
-    /// `RUN_DIR/processes.json`: the services' addresses and every running child's name and pid
-    /// (removed when the session ends).
-    fn write_processes(&self) -> Result<()> {
-        let mut list = vec![serde_json::json!({"name": self.server.name, "pid": self.server.pid})];
-        if let Some(l) = &self.learner {
-            list.push(serde_json::json!({"name": l.name, "pid": l.pid}));
-        }
-        for a in &self.actors {
-            if let Some(c) = &a.child {
-                list.push(serde_json::json!({"name": c.name, "pid": c.pid, "actor_id": a.id, "eval": a.eval}));
-            }
-        }
-        let doc = serde_json::json!({
-            "rfcl_pid": std::process::id(),
-            "curriculum": self.curriculum_addr,
-            "dashboard": self.dashboard,
-            "learner": self.learner_addr,
-            // The run's token lives in this file, never in processes.json itself.
-            "token_file": self.prep.run_dir.join("token"),
-            "children": list,
-        });
-        write_json(&self.prep.run_dir.join("processes.json"), &doc)
     }
 
     /// Watches the children and the run's progress until the run ends, fails or is interrupted.
@@ -639,35 +421,33 @@ impl Session {
                 _ = signals.recv() => return Ok(Ending::Interrupted),
             }
             ticks += 1;
-            if let Some(status) = self.server.try_wait() {
+            if let Some(status) = self.supervisor.try_wait(Service::Curriculum) {
                 if let Some(ending) = self.restart(Service::Curriculum, status, signals).await? {
                     return Ok(ending);
                 }
             }
-            if let Some(learner) = self.learner.as_mut() {
-                if let Some(status) = learner.try_wait() {
-                    if status.success() {
-                        self.learner_exited = Some(learner.pid);
-                        self.learner = None;
-                        if self.ended_by_itself().await == Ending::Budget
-                            && !self.await_final_eval(signals).await
-                        {
-                            return Ok(Ending::Interrupted);
-                        }
-                        return Ok(self.ended_by_itself().await);
+            if let Some(status) = self.supervisor.try_wait(Service::Learner) {
+                if status.success() {
+                    self.learner_exited = self.supervisor.learner_ended();
+                    if self.ended_by_itself().await == Ending::Budget
+                        && !self.await_final_eval(signals).await
+                    {
+                        return Ok(Ending::Interrupted);
                     }
-                    if let Some(ending) = self.restart(Service::Learner, status, signals).await? {
-                        return Ok(ending);
-                    }
+                    return Ok(self.ended_by_itself().await);
+                }
+                if let Some(ending) = self.restart(Service::Learner, status, signals).await? {
+                    return Ok(ending);
                 }
             }
-            self.check_actors()?;
-            let answered = self.poll_health().await;
-            self.watch(Service::Learner, answered);
+            self.reap_actors()?;
+            let answered = self.monitor.poll_health().await;
+            self.heard(Service::Learner, answered);
             if ticks % STATE_EVERY == 1 {
                 let answered = self.poll_state().await;
-                self.watch(Service::Curriculum, answered);
+                self.heard(Service::Curriculum, answered);
                 if self
+                    .monitor
                     .evals
                     .reached(self.prep.cfg.service.stop_at_eval_success)
                 {
@@ -675,12 +455,10 @@ impl Session {
                 }
             }
             if ticks.is_multiple_of(PROGRESS_EVERY) {
-                if let Err(e) = self.save_progress(false) {
-                    self.bar.println(format!("warning: {e:#}"));
-                }
+                self.save_progress_or_warn();
             }
             self.draw();
-            if self.actors.iter().filter(|a| !a.eval).all(|a| a.done) {
+            if self.supervisor.train_actors_done() {
                 self.bar
                     .println("every actor finished: the curriculum hands out no more leases");
                 return Ok(self.ended_by_itself().await);
@@ -689,8 +467,9 @@ impl Session {
     }
 
     /// Restarts `service`, which died with `status`, from its last snapshot or checkpoint: after
-    /// a backoff, on the port it had, until it is ready again or has died too often (an error).
-    /// Records the restart with what it rolled back. `Some(Interrupted)` when Ctrl-C came first.
+    /// the policy's backoff, on the port it had, until it is ready again or has died too often
+    /// (an error). Records the restart with what it rolled back. `Some(Interrupted)` when Ctrl-C
+    /// came first.
     async fn restart(
         &mut self,
         service: Service,
@@ -704,14 +483,7 @@ impl Session {
             None => describe(Some(status)),
         };
         let mut cause = first_cause.clone();
-        let mut tail = match service {
-            Service::Curriculum => self.server.log_tail(),
-            Service::Learner => self
-                .learner
-                .as_ref()
-                .map(Child::log_tail)
-                .unwrap_or_default(),
-        };
+        let mut tail = self.supervisor.log_tail(service);
         // A full disk kills every restart the same way: say so instead of retrying.
         if let Some(short) = children::short_of_space(&self.prep.run_dir) {
             bail!(
@@ -720,18 +492,15 @@ impl Session {
                 self.prep.run_dir.display()
             );
         }
-        let before = self.rollback_counters();
+        let before = self.monitor.rollback_counters();
         let (child, line) = loop {
-            let now = self.wall_s();
-            let recent = self.service_deaths.recent(service.id(), now);
-            if !self.service_deaths.allow(service.id(), now) {
-                bail!(
-                    "the {name} died {} times within {SERVICE_RESTART_WINDOW_S} s (last: {cause}); \
-                     stopping the run{tail}",
-                    recent + 1
-                );
-            }
-            let delay = restart_delay_s(recent);
+            let delay = match self.supervisor.policy.service_died(service, self.wall_s()) {
+                ServiceDecision::Restart { delay_s } => delay_s,
+                ServiceDecision::GiveUp { deaths } => bail!(
+                    "the {name} died {deaths} times within {SERVICE_RESTART_WINDOW_S} s (last: \
+                     {cause}); stopping the run{tail}"
+                ),
+            };
             self.bar.println(format!(
                 "the {name} died ({cause}); restarting it in {delay} s from its last {}{tail}",
                 service.saved_state()
@@ -740,11 +509,7 @@ impl Session {
                 _ = tokio::time::sleep(Duration::from_secs(delay)) => {}
                 _ = signals.recv() => return Ok(Some(Ending::Interrupted)),
             }
-            let args = match service {
-                Service::Curriculum => self.server_args.clone(),
-                Service::Learner => self.learner_args.clone(),
-            };
-            let mut child = self.launcher.spawn(name, name, args)?;
+            let mut child = self.supervisor.spawn_again(service)?;
             let ready = tokio::select! {
                 ready = child.ready_line(READY_TIMEOUT) => ready,
                 _ = signals.recv() => {
@@ -761,18 +526,13 @@ impl Session {
             }
         };
         let pid = child.pid;
+        self.supervisor.replace(service, child)?;
         match service {
-            Service::Curriculum => {
-                self.server = child;
-                if let Some(view) = self.fetch_state().await {
-                    self.take_view(view);
-                }
-            }
+            Service::Curriculum => self.take_state().await,
             Service::Learner => {
-                self.learner = Some(child);
-                self.last_health = None;
+                self.monitor.rate.restart();
                 for _ in 0..10 {
-                    if self.poll_health().await {
+                    if self.monitor.poll_health().await {
                         break;
                     }
                     tokio::time::sleep(POLL_EVERY).await;
@@ -783,7 +543,7 @@ impl Session {
                 }
             }
         }
-        let rolled_back = RolledBack::between(before, self.rollback_counters());
+        let rolled_back = RolledBack::between(before, self.monitor.rollback_counters());
         self.bar.println(format!(
             "the {name} is back (pid {pid}) from its last {}: rolled back {} env steps, {} \
              updates, {} episode reports",
@@ -798,21 +558,8 @@ impl Session {
             cause: first_cause,
             rolled_back,
         });
-        self.write_processes()?;
-        if let Err(e) = self.save_progress(false) {
-            self.bar.println(format!("warning: {e:#}"));
-        }
+        self.save_progress_or_warn();
         Ok(None)
-    }
-
-    /// The counters a restart can roll back: the learner's env steps and updates (its last
-    /// Health), the curriculum's episode reports (its last state).
-    fn rollback_counters(&self) -> [u64; 3] {
-        [
-            self.counters.counts.env_steps,
-            self.counters.counts.updates,
-            self.last_view.as_ref().map_or(0, |v| v.episodes),
-        ]
     }
 
     /// Why a run that ended by itself ended: the curriculum server's stop rule (the evals reached
@@ -821,10 +568,12 @@ impl Session {
     async fn ended_by_itself(&mut self) -> Ending {
         self.poll_state().await;
         let stage_1_ended = self
+            .monitor
             .last_view
             .as_ref()
             .is_some_and(|v| v.stage_1_env_steps.is_some());
         if self
+            .monitor
             .evals
             .reached(self.prep.cfg.service.stop_at_eval_success)
         {
@@ -850,7 +599,7 @@ impl Session {
         };
         let final_policy = last.counts.policy_version;
         if cfg.service.num_eval_actors == 0
-            || !self.evals.final_eval_pending(
+            || !self.monitor.evals.final_eval_pending(
                 last.counts.env_steps,
                 cfg.sac.eval_freq,
                 cfg.sac.num_seed_steps,
@@ -858,21 +607,13 @@ impl Session {
         {
             return true;
         }
-        for actor in self.actors.iter_mut().filter(|a| !a.eval) {
-            if let Some(child) = actor.child.as_mut() {
-                child.stop(ACTOR_GRACE).await;
-            }
-        }
+        self.supervisor.stop_train_actors().await;
         self.bar.println(format!(
             "train.steps used: waiting for the evaluation of the final policy (version \
              {final_policy}, {} env steps)",
             last.counts.env_steps
         ));
-        let episodes_reported = |view: &Option<RunState>| {
-            view.as_ref()
-                .map_or(0, |v| v.evals.iter().map(|p| p.episodes).sum::<u64>())
-        };
-        let mut reported = episodes_reported(&self.last_view);
+        let mut reported = self.monitor.eval_episodes_reported();
         let mut last_news = Instant::now();
         let mut tick = tokio::time::interval(POLL_EVERY);
         loop {
@@ -882,6 +623,7 @@ impl Session {
             }
             self.poll_state().await;
             if self
+                .monitor
                 .evals
                 .evals()
                 .iter()
@@ -889,16 +631,11 @@ impl Session {
             {
                 return true;
             }
-            let now_reported = episodes_reported(&self.last_view);
+            let now_reported = self.monitor.eval_episodes_reported();
             if now_reported > reported {
                 (reported, last_news) = (now_reported, Instant::now());
             }
-            let eval_actors_running = self
-                .actors
-                .iter_mut()
-                .filter(|a| a.eval)
-                .any(|a| a.child.as_mut().is_some_and(|c| c.try_wait().is_none()));
-            let why = if !eval_actors_running {
+            let why = if !self.supervisor.eval_actors_running() {
                 "the eval actors stopped".to_string()
             } else if last_news.elapsed() >= FINAL_EVAL_PATIENCE {
                 format!(
@@ -916,142 +653,77 @@ impl Session {
         }
     }
 
-    fn check_actors(&mut self) -> Result<()> {
-        let now = self.wall_s();
-        let mut changed = false;
-        for i in 0..self.actors.len() {
-            let Some(child) = self.actors[i].child.as_mut() else {
-                continue;
-            };
-            let Some(status) = child.try_wait() else {
-                continue;
-            };
-            let name = child.name.clone();
-            let tail = child.log_tail();
-            self.actors[i].child = None;
-            changed = true;
-            if status.success() {
-                self.bar.println(format!("{name} finished (exit status 0)"));
-                self.actors[i].done = true;
-                continue;
+    /// Reaps the actors that exited, says what became of them and counts the respawns.
+    fn reap_actors(&mut self) -> Result<()> {
+        for exit in self.supervisor.reap_actors(self.wall_s())? {
+            match exit {
+                ActorExit::Finished { name } => {
+                    self.bar.println(format!("{name} finished (exit status 0)"))
+                }
+                ActorExit::Respawned {
+                    name,
+                    pid,
+                    cause,
+                    tail,
+                } => {
+                    self.prep.progress.actor_respawns += 1;
+                    self.bar.println(format!(
+                        "{name} died ({cause}); respawned it (pid {pid}){tail}"
+                    ));
+                }
             }
-            if !self.respawns.allow(self.actors[i].id, now) {
-                bail!(
-                    "{name} keeps dying ({}); stopping the run{tail}",
-                    describe(Some(status))
-                );
-            }
-            self.spawn_actor(i)?;
-            self.prep.progress.actor_respawns += 1;
-            let pid = self.actors[i].child.as_ref().map_or(0, |c| c.pid);
-            self.bar.println(format!(
-                "{name} died ({}); respawned it (pid {pid}){tail}",
-                describe(Some(status))
-            ));
-        }
-        if changed {
-            self.write_processes()?;
         }
         Ok(())
     }
 
-    /// Takes the learner's counters from its Health; false when it did not answer.
-    async fn poll_health(&mut self) -> bool {
-        let mut client = self.learner_client.clone();
-        let Ok(Ok(reply)) =
-            tokio::time::timeout(Duration::from_secs(2), client.health(v1::HealthRequest {})).await
-        else {
-            return false;
-        };
-        let h = reply.into_inner();
-        let now = Instant::now();
-        if let Some((t, updates)) = self.last_health {
-            let dt = now.duration_since(t).as_secs_f64();
-            if dt > 0.0 && h.updates >= updates {
-                let rate = (h.updates - updates) as f64 / dt;
-                self.updates_per_s = 0.8 * self.updates_per_s + 0.2 * rate;
-            }
-        }
-        self.last_health = Some((now, h.updates));
-        self.counters = LearnerCounters {
-            source: CountersSource::LastPoll,
-            counts: LearnerCounts {
-                env_steps: h.env_steps,
-                updates: h.updates,
-                policy_version: h.policy_version,
-                shm_records: h.shm_records,
-                grpc_records: h.grpc_records,
-                shm_lost_records: h.shm_lost_records,
-                refused_batches: h.refused_batches,
-                dropped_stale_epoch: h.dropped_stale_epoch,
-                unused_records: h.unused_records,
-            },
-        };
-        true
-    }
-
-    async fn fetch_state(&mut self) -> Option<RunState> {
-        fetch_run_state(&mut self.curriculum.clone()).await
-    }
-
-    /// True when the curriculum server answered.
+    /// True when the curriculum server answered; completed evaluations are printed and saved.
     async fn poll_state(&mut self) -> bool {
-        let Some(view) = self.fetch_state().await else {
+        let Some(fresh) = self.monitor.poll_state(self.wall_s()).await else {
             return false;
         };
-        if self.take_view(view) {
-            if let Err(e) = self.save_progress(false) {
-                self.bar.println(format!("warning: {e:#}"));
-            }
+        if self.record_evals(fresh) {
+            self.save_progress_or_warn();
         }
         true
     }
 
-    /// Keeps count of a service's unanswered calls: says so once it has been silent a while, and
-    /// kills it at `service.hang_timeout_s`, so that the supervisor restarts it as a dead one.
-    fn watch(&mut self, service: Service, answered: bool) {
-        let now = self.wall_s();
-        let timeout = self.prep.cfg.service.hang_timeout_s;
-        let (silence, child) = match service {
-            Service::Curriculum => (&mut self.server_silence, Some(&self.server)),
-            Service::Learner => (&mut self.learner_silence, self.learner.as_ref()),
-        };
-        let Some(child) = child else { return };
-        if answered {
-            silence.answered();
-            return;
-        }
-        let (name, pid) = (service.name(), child.pid);
-        match silence.silent(now, SILENCE_WARN_S, timeout) {
-            SilenceAction::Wait => {}
-            SilenceAction::Warn(s) => self.bar.println(match timeout {
-                Some(t) => format!(
-                    "the {name} (pid {pid}) has not answered for {s:.0} s; it is restarted if it \
-                     stays silent for {t:.0} s (service.hang_timeout_s)"
-                ),
-                None => format!("the {name} (pid {pid}) has not answered for {s:.0} s"),
-            }),
-            SilenceAction::Kill(s) => {
-                self.bar.println(format!(
-                    "the {name} (pid {pid}) has not answered for {s:.0} s: killing it to restart it"
-                ));
-                child.signal(rustix::process::Signal::KILL);
-                self.killed_silent = Some((service, s));
-            }
+    /// Takes the curriculum server's state, if it answers, and records the evals it completes.
+    async fn take_state(&mut self) {
+        if let Some(view) = self.monitor.fetch_state().await {
+            let fresh = self.monitor.take_view(view, self.wall_s());
+            self.record_evals(fresh);
         }
     }
 
-    /// Keeps the curriculum server's latest state and prints and records the evals it completes;
-    /// true if there were any.
-    fn take_view(&mut self, view: RunState) -> bool {
-        let fresh = self.evals.update(&view.evals, self.wall_s());
+    /// Prints and records completed evaluations; true if there were any.
+    fn record_evals(&mut self, fresh: Vec<CompleteEval>) -> bool {
         let any = !fresh.is_empty();
         for eval in fresh {
-            self.bar.println(format_eval(&eval));
+            self.bar.println(eval_line(&eval));
             self.prep.progress.evals.push(eval);
         }
-        self.last_view = Some(view);
         any
+    }
+
+    /// Counts a service's answer or silence: says so once it has been silent a while, and kills
+    /// it at `service.hang_timeout_s`, so that the supervision restarts it as a dead one.
+    fn heard(&mut self, service: Service, answered: bool) {
+        let Some(pid) = self.supervisor.child(service).map(|c| c.pid) else {
+            return;
+        };
+        let timeout = self.prep.cfg.service.hang_timeout_s;
+        let action = self
+            .monitor
+            .heard(service, answered, self.wall_s(), timeout);
+        if let Some(line) = silence_line(service.name(), pid, action, timeout) {
+            self.bar.println(line);
+        }
+        if let SilenceAction::Kill(s) = action {
+            if let Some(child) = self.supervisor.child(service) {
+                child.signal(rustix::process::Signal::KILL);
+            }
+            self.killed_silent = Some((service, s));
+        }
     }
 
     /// `RUN_DIR/train_progress.json`, with this session's wall time so far (`ended` = false) or
@@ -1066,16 +738,19 @@ impl Session {
         write_json(&self.prep.run_dir.join(PROGRESS_FILE), &p)
     }
 
+    fn save_progress_or_warn(&self) {
+        if let Err(e) = self.save_progress(false) {
+            self.bar.println(format!("warning: {e:#}"));
+        }
+    }
+
     fn draw(&self) {
-        let stage = self.last_view.as_ref().map_or(1, |v| v.stage);
-        let eval = self.evals.last().map_or("-".to_string(), |e| {
-            format!("{:.0}%", 100.0 * e.success_at_end)
-        });
         self.bar.update(
-            self.counters.counts.env_steps,
-            format!(
-                "stage {stage} | eval {eval} | {:.1} upd/s",
-                self.updates_per_s
+            self.monitor.counters.counts.env_steps,
+            status(
+                self.monitor.stage(),
+                self.monitor.evals.last().as_ref(),
+                self.monitor.rate.per_s,
             ),
         );
     }
@@ -1084,197 +759,35 @@ impl Session {
     /// curriculum's final state, then writes the summary. The learner's counters are its own
     /// final ones, all from one moment, so they agree with each other.
     async fn finish(mut self, ending: Result<Ending>) -> Result<Summary> {
-        if let Some(view) = self.fetch_state().await {
-            self.take_view(view);
-        }
+        self.take_state().await;
         self.bar.finish();
-        for a in &mut self.actors {
-            if let Some(c) = a.child.as_mut() {
-                c.stop(ACTOR_GRACE).await;
-            }
-        }
-        let learner_pid = self.learner.as_ref().map(|l| l.pid).or(self.learner_exited);
-        if let Some(l) = self.learner.as_mut() {
-            l.stop(LEARNER_GRACE).await;
-        }
+        let learner_pid = self
+            .supervisor
+            .stop_actors_and_learner()
+            .await
+            .or(self.learner_exited);
         // The learner's own final counts; a learner that was killed wrote none, and the last
         // periodic Health reply stands.
         if let Some(last) = learner_pid.and_then(|pid| read_final_counters(&self.prep.run_dir, pid))
         {
-            self.counters = last;
+            self.monitor.counters = last;
             // Kept over sessions: a resumed run's curriculum still counts these records' episodes.
             self.prep.progress.unused_records += last.counts.unused_records;
         }
-        self.server.stop(SERVER_GRACE).await;
-        let _ = std::fs::remove_file(self.prep.run_dir.join("processes.json"));
-        let wall = self.wall_s();
+        self.supervisor.stop_server().await;
+        let wall_s = self.wall_s();
         self.save_progress(true)?;
-        let summary_path = self.prep.run_dir.join("summary.json");
-        let Some(view) = self.last_view.as_ref() else {
-            ending?;
-            bail!("the curriculum server never answered GetState: no summary");
-        };
-        let (ending, failure) = match ending {
-            Ok(ending) => (ending, None),
-            Err(e) => (Ending::Failed, Some(e)),
-        };
-        let cfg = &self.prep.cfg;
-        let shape = RunShape {
-            train_envs: u64::from(cfg.env.num_envs),
-            horizon: u64::from(cfg.env.max_episode_steps),
-            batch_records: u64::from(cfg.service.transition_batch),
-        };
-        let mut summary = summarize(
-            view,
-            &self.evals,
-            self.counters,
-            &self.prep.progress,
-            shape,
-            wall,
+        finish::write_summary(
+            Outcome {
+                cfg: &self.prep.cfg,
+                run_dir: &self.prep.run_dir,
+                view: self.monitor.last_view.as_ref(),
+                evals: &self.monitor.evals,
+                counters: self.monitor.counters,
+                progress: &self.prep.progress,
+                wall_s,
+            },
             ending,
-        );
-        if let Some(e) = failure {
-            summary.error = Some(format!("{e:#}"));
-            write_json(&summary_path, &summary)?;
-            return Err(e.context(format!(
-                "the run failed (its summary is in {})",
-                summary_path.display()
-            )));
-        }
-        write_json(&summary_path, &summary)?;
-        println!("{}", serde_json::to_string_pretty(&summary)?);
-        match ending {
-            Ending::Interrupted => eprintln!(
-                "interrupted: continue with `rfcl train --resume {}`",
-                self.prep.run_dir.display()
-            ),
-            Ending::Failed => unreachable!("a failure returned above"),
-            Ending::Budget | Ending::EvalSuccess | Ending::Stage1Done => eprintln!(
-                "run finished ({}); summary in {}",
-                match ending {
-                    Ending::Budget => "step budget used",
-                    Ending::Stage1Done => "stage 1 ended under train.stage_1_only",
-                    _ => "eval success reached",
-                },
-                self.prep.run_dir.join("summary.json").display()
-            ),
-        }
-        Ok(summary)
+        )
     }
-}
-
-/// The counters the learner with `pid` wrote when it stopped cleanly
-/// ([`FINAL_COUNTERS_FILE`]); `None` when it wrote none (killed) or the file is an earlier
-/// process's.
-fn read_final_counters(run_dir: &Path, pid: u32) -> Option<LearnerCounters> {
-    let path = run_dir.join(FINAL_COUNTERS_FILE);
-    let last: FinalCounters = serde_json::from_slice(&std::fs::read(&path).ok()?)
-        .inspect_err(|e| tracing::warn!("reading {}: {e}", path.display()))
-        .ok()?;
-    (last.pid == pid).then_some(LearnerCounters {
-        source: CountersSource::Final,
-        counts: last.counts,
-    })
-}
-
-/// The port of `host:port` or `http://host:port/`.
-fn port_of(addr: &str) -> Result<u16> {
-    addr.trim_end_matches('/')
-        .rsplit(':')
-        .next()
-        .and_then(|p| p.parse().ok())
-        .with_context(|| format!("no port in the service address {addr:?}"))
-}
-
-fn format_eval(e: &CompleteEval) -> String {
-    format!(
-        "eval at {} env steps (policy v{}): success {:.0}% at the end, {:.0}% once, mean return \
-         {:.1} ({} episodes)",
-        e.env_steps,
-        e.policy_version,
-        100.0 * e.success_at_end,
-        100.0 * e.success_once,
-        e.mean_return,
-        e.episodes
-    )
-}
-
-fn channel(url: &str) -> Result<Channel> {
-    Ok(tonic::transport::Endpoint::from_shared(url.to_string())
-        .with_context(|| format!("invalid address {url}"))?
-        .connect_timeout(Duration::from_secs(3))
-        .connect_lazy())
-}
-
-/// The progress bar on a terminal; a status line every 15 s elsewhere (logs, tests).
-struct Bar {
-    bar: Option<ProgressBar>,
-    total: u64,
-    last_line: std::cell::Cell<Option<Instant>>,
-}
-
-impl Bar {
-    fn new(total: u64) -> Self {
-        let bar = std::io::stderr().is_terminal().then(|| {
-            let bar = ProgressBar::new(total);
-            bar.set_style(
-                ProgressStyle::with_template(
-                    "{bar:30.cyan/blue} {human_pos}/{human_len} env steps | {msg} | \
-                     {elapsed_precise} elapsed, ETA {eta}",
-                )
-                .expect("a valid template"),
-            );
-            bar
-        });
-        Self {
-            bar,
-            total,
-            last_line: std::cell::Cell::new(None),
-        }
-    }
-
-    fn update(&self, env_steps: u64, msg: String) {
-        match &self.bar {
-            Some(bar) => {
-                bar.set_position(env_steps.min(self.total));
-                bar.set_message(msg);
-            }
-            None => {
-                let due = self
-                    .last_line
-                    .get()
-                    .is_none_or(|t| t.elapsed() >= Duration::from_secs(15));
-                if due {
-                    self.last_line.set(Some(Instant::now()));
-                    eprintln!("{env_steps}/{} env steps | {msg}", self.total);
-                }
-            }
-        }
-    }
-
-    fn println(&self, line: impl AsRef<str>) {
-        match &self.bar {
-            Some(bar) => bar.println(line.as_ref()),
-            None => eprintln!("{}", line.as_ref()),
-        }
-    }
-
-    fn finish(&self) {
-        if let Some(bar) = &self.bar {
-            bar.finish_and_clear();
-        }
-    }
-}
-
-/// The run's state from its curriculum server (GetState), `None` when the server does not answer
-/// within 5 s or its reply is not a run state.
-pub async fn fetch_run_state(client: &mut CurriculumClient<AuthChannel>) -> Option<RunState> {
-    let reply = tokio::time::timeout(
-        Duration::from_secs(5),
-        client.get_state(v1::GetStateRequest {}),
-    )
-    .await
-    .ok()?
-    .ok()?;
-    rfcl_proto::convert::run_state(reply.get_ref()).ok()
 }

@@ -88,12 +88,6 @@ impl RolledBack {
     }
 }
 
-/// Seconds to wait before restarting a service that has already been restarted `recent` times
-/// within the limiter's window: 1, 2, 4, ... capped at 30, so a crash loop does not spin.
-pub fn restart_delay_s(recent: usize) -> u64 {
-    1u64.checked_shl(recent as u32).unwrap_or(u64::MAX).min(30)
-}
-
 impl RunProgress {
     /// Starts a session: counts it and takes in the time a killed session left behind.
     pub fn begin_session(&mut self) {
@@ -555,104 +549,9 @@ pub fn split_envs(total: u32, parts: u32) -> Vec<u32> {
         .collect()
 }
 
-/// Decides whether a dead actor is respawned: at most `max` deaths of one actor within
-/// `window_s` seconds; more means it cannot run, and the run stops with its error.
-#[derive(Debug, Clone)]
-pub struct RespawnLimiter {
-    max: usize,
-    window_s: f64,
-    deaths: BTreeMap<u32, Vec<f64>>,
-}
-
-impl RespawnLimiter {
-    pub fn new(max: usize, window_s: f64) -> Self {
-        Self {
-            max,
-            window_s,
-            deaths: BTreeMap::new(),
-        }
-    }
-
-    /// Deaths of `id` within the window before `now`.
-    pub fn recent(&self, id: u32, now: f64) -> usize {
-        self.deaths.get(&id).map_or(0, |d| {
-            d.iter().filter(|&&t| now - t < self.window_s).count()
-        })
-    }
-
-    /// Records a death of actor `id` at `now`; true when it may be respawned.
-    pub fn allow(&mut self, id: u32, now: f64) -> bool {
-        let deaths = self.deaths.entry(id).or_default();
-        deaths.retain(|t| now - t < self.window_s);
-        deaths.push(now);
-        deaths.len() <= self.max
-    }
-}
-
-/// A service whose process lives but does not answer: said once after `warn_after_s`, killed
-/// (to be restarted) after `kill_after_s`. Any answer resets it.
-#[derive(Debug, Clone, Default)]
-pub struct Silence {
-    since: Option<f64>,
-    warned: bool,
-}
-
-/// What [`Silence::silent`] asks the supervisor to do; each carries the seconds of silence.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum SilenceAction {
-    Wait,
-    Warn(f64),
-    Kill(f64),
-}
-
-impl Silence {
-    pub fn answered(&mut self) {
-        *self = Self::default();
-    }
-
-    /// A call at `now` went unanswered.
-    pub fn silent(
-        &mut self,
-        now: f64,
-        warn_after_s: f64,
-        kill_after_s: Option<f64>,
-    ) -> SilenceAction {
-        let since = *self.since.get_or_insert(now);
-        let silent_s = now - since;
-        if kill_after_s.is_some_and(|kill| silent_s >= kill) {
-            *self = Self::default();
-            SilenceAction::Kill(silent_s)
-        } else if silent_s >= warn_after_s && !self.warned {
-            self.warned = true;
-            SilenceAction::Warn(silent_s)
-        } else {
-            SilenceAction::Wait
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn silence_warns_once_then_kills_and_an_answer_resets_it() {
-        let mut s = Silence::default();
-        assert_eq!(s.silent(100.0, 15.0, Some(60.0)), SilenceAction::Wait);
-        assert_eq!(s.silent(110.0, 15.0, Some(60.0)), SilenceAction::Wait);
-        assert_eq!(s.silent(116.0, 15.0, Some(60.0)), SilenceAction::Warn(16.0));
-        assert_eq!(s.silent(130.0, 15.0, Some(60.0)), SilenceAction::Wait);
-        // An answer starts the count again.
-        s.answered();
-        assert_eq!(s.silent(140.0, 15.0, Some(60.0)), SilenceAction::Wait);
-        assert_eq!(s.silent(156.0, 15.0, Some(60.0)), SilenceAction::Warn(16.0));
-        assert_eq!(s.silent(200.0, 15.0, Some(60.0)), SilenceAction::Kill(60.0));
-        // After a kill the restarted service starts with a clean slate; without a timeout it is
-        // only ever warned about.
-        assert_eq!(s.silent(201.0, 15.0, None), SilenceAction::Wait);
-        assert_eq!(s.silent(1_000.0, 15.0, None), SilenceAction::Warn(799.0));
-        assert_eq!(s.silent(9_000.0, 15.0, None), SilenceAction::Wait);
-    }
 
     fn point(version: u64, env_steps: u64, episodes: u64, success: f64) -> EvalPoint {
         EvalPoint {
@@ -979,11 +878,7 @@ mod tests {
     }
 
     #[test]
-    fn restarts_back_off_and_say_what_they_rolled_back() {
-        assert_eq!(
-            [0, 1, 2, 3, 4, 5, 6, 64].map(restart_delay_s),
-            [1, 2, 4, 8, 16, 30, 30, 30]
-        );
+    fn restarts_say_what_they_rolled_back() {
         // The learner came back at its checkpoint: 2,000 env steps and 500 updates lost; the
         // reports counter is not the learner's and did not move.
         assert_eq!(
@@ -999,14 +894,6 @@ mod tests {
             RolledBack::between([5, 5, 5], [6, 5, 9]),
             RolledBack::default()
         );
-        let mut r = RespawnLimiter::new(3, 600.0);
-        assert_eq!(r.recent(0, 0.0), 0);
-        r.allow(0, 0.0);
-        r.allow(0, 100.0);
-        assert_eq!(
-            (r.recent(0, 200.0), r.recent(0, 650.0), r.recent(1, 200.0)),
-            (2, 1, 0)
-        );
     }
 
     #[test]
@@ -1014,16 +901,5 @@ mod tests {
         assert_eq!(split_envs(8, 2), [4, 4]);
         assert_eq!(split_envs(8, 3), [3, 3, 2]);
         assert_eq!(split_envs(4, 1), [4]);
-    }
-
-    #[test]
-    fn an_actor_that_keeps_dying_is_not_respawned() {
-        let mut r = RespawnLimiter::new(3, 60.0);
-        assert!(r.allow(1, 0.0));
-        assert!(r.allow(1, 10.0));
-        assert!(r.allow(2, 10.0));
-        assert!(r.allow(1, 20.0));
-        assert!(!r.allow(1, 30.0), "a fourth death within a minute");
-        assert!(r.allow(1, 200.0), "old deaths are forgotten");
     }
 }
