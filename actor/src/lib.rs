@@ -16,7 +16,9 @@
 //! * [`retry`]: backoff with a deadline for lost connections.
 //! * [`bench`]: `rfcl bench actor`, the actor's overhead over a bare env loop.
 //!
-//! The `actor` binary (`src/bin/actor/`) is the transport shell around [`rollout::Rollout`].
+//! * [`service`]: the actor service, `serve(options, shutdown)`: the transport shell around
+//!   [`rollout::Rollout`] (gRPC and shared-memory links, train and eval loops). The `actor`
+//!   binary (`src/bin/actor.rs`) parses its flags and calls it.
 #![forbid(unsafe_code)]
 
 pub mod bench;
@@ -29,6 +31,7 @@ pub mod python;
 pub mod replay;
 pub mod retry;
 pub mod rollout;
+pub mod service;
 pub mod suite;
 pub mod video;
 

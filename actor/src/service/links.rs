@@ -5,8 +5,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use crate::retry::Backoff;
 use anyhow::{anyhow, bail, Context, Result};
-use rfcl_actor::retry::Backoff;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, ResetLease};
 use rfcl_core::video::EvalVideo;
 use rfcl_proto::auth::{AuthChannel, ClientAuth};

@@ -1,18 +1,26 @@
-//! The actor's loops: the thin shell that feeds leases and policies into a [`Rollout`] and ships
-//! what it produces (transition batches to the learner, episode reports to the curriculum server).
+//! The actor service as a library: [`serve`] connects to the learner, makes the envs and runs the
+//! train or eval loop, the thin shell that feeds leases and policies into a [`Rollout`] and ships
+//! what it produces (transition batches to the learner, episode reports to the curriculum server),
+//! until its shutdown future resolves. The `actor` binary parses flags and calls it.
+//!
+//! * `links`: the learner and curriculum clients, retried with backoff.
+//! * [`shm`]: the transport choice and the shared-memory side.
+mod links;
+pub mod shm;
+
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use crate::eval::{episodes_per_eval_actor, EvalSchedule};
+use crate::net::{policy_from_weights, published_policy_bytes};
+use crate::policy::PolicyHandle;
+use crate::rollout::{derive_seed, Rollout, RolloutError, RolloutSettings, StepOutput};
+use crate::suite::make_env;
+use crate::video::{encode_gif, Recorder};
 use anyhow::{bail, Context, Result};
-use rfcl_actor::eval::{episodes_per_eval_actor, EvalSchedule};
-use rfcl_actor::net::{policy_from_weights, published_policy_bytes};
-use rfcl_actor::policy::PolicyHandle;
-use rfcl_actor::rollout::{derive_seed, Rollout, RolloutError, RolloutSettings, StepOutput};
-use rfcl_actor::suite::make_env;
-use rfcl_actor::video::{encode_gif, Recorder};
 use rfcl_core::config::RunConfig;
 use rfcl_core::lease::{AcquireRequest, EpisodeReport, ResetLease};
 use rfcl_core::transition::{RecordLayout, Transition};
@@ -21,8 +29,8 @@ use rfcl_proto::auth::ClientAuth;
 use rfcl_proto::v1;
 use tokio::sync::{mpsc, watch};
 
-use crate::links::{Curriculum, Learner, PushCounters, Reported};
-use crate::shm::{self, Choice, Plan, ShmLink};
+use links::{Curriculum, Learner, PushCounters, Reported};
+use shm::{Choice, Plan, ShmLink};
 
 /// What the actor was asked to do.
 #[derive(Debug, Clone)]
@@ -58,7 +66,7 @@ struct Run {
 }
 
 /// Connects, then runs the train or eval loop until `shutdown` resolves or an error.
-pub async fn run(
+pub async fn serve(
     opts: Options,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<Stopped> {

@@ -8,18 +8,16 @@
 //! `sac.eval_freq` with the deterministic policy on EVAL leases (spec 5.7). Lost connections are
 //! retried with backoff for `--retry-for` seconds; after that the actor exits non-zero.
 //!
-//! Transport (`--transport auto|shm|grpc`, `shm.rs`): transitions and policies go over iceoryx2
-//! shared memory when the actor runs on the learner's host, over gRPC otherwise; the choice and
-//! its reason are logged.
-mod links;
-mod service;
-mod shm;
+//! Transport (`--transport auto|shm|grpc`, `rfcl_actor::service::shm`): transitions and policies
+//! go over iceoryx2 shared memory when the actor runs on the learner's host, over gRPC otherwise;
+//! the choice and its reason are logged. The service itself is `rfcl_actor::service::serve`.
 
 use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::{anyhow, Context};
 use clap::Parser;
+use rfcl_actor::service::{self, shm};
 use rfcl_proto::auth::ClientAuth;
 
 #[derive(Parser)]
@@ -82,7 +80,7 @@ fn main() -> ExitCode {
     };
     let id = opts.id;
     rfcl_runtime::run(rfcl_runtime::Flavor::CurrentThread, async move {
-        let stopped = service::run(opts, rfcl_runtime::shutdown_signal())
+        let stopped = service::serve(opts, rfcl_runtime::shutdown_signal())
             .await
             .with_context(|| format!("actor {id}"))?;
         tracing::info!(actor = id, "stopped: {stopped:?}");

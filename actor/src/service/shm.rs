@@ -21,7 +21,7 @@ use rfcl_proto::v1;
 use rfcl_shm::{PolicySubscriber, Sent, ShmNode, TransitionPublisher};
 use tokio::sync::{mpsc, oneshot, watch};
 
-use crate::links::{backoff, PushCounters};
+use super::links::{backoff, PushCounters};
 
 /// `--transport`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
