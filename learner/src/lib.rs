@@ -1,5 +1,7 @@
-//! RFCL learner library: batched-ensemble SAC on libtorch and its replay (spec 5, 6.2-6.4, 4.2).
-//! No network I/O here; the `learner` binary wires it to the transports.
+//! RFCL learner library: batched-ensemble SAC on libtorch and its replay (spec 5, 6.2-6.4, 4.2),
+//! and the learner service around them. The maths and the replay do no I/O; the service modules
+//! below wire them to the transports, and the `learner` binary parses flags, loads, binds and calls
+//! [`server`].
 //!
 //! * [`nets`]: the critic ensemble (one batched computation) and its initialisers, with the actor
 //!   (the tanh-Gaussian policy) of rfcl-policy (spec 5.1).
@@ -15,11 +17,16 @@
 //! * [`bench`]: updates/s and FLOPs of the SAC update (`rfcl bench learner`).
 //! * [`metrics`], [`tensorboard`], [`prom`]: `metrics.csv`, TensorBoard event files and the
 //!   Prometheus `/metrics` state (spec 5.8; docs/LEARNER.md).
-//!
+//! * [`error`]: the library's error type and the one-line rendering of a cause chain.
 //! * [`runtime`]: process-wide CPU settings (threads, allocator) for the SAC maths.
 //! * [`ingest`], [`service`], [`shm`]: transitions in over gRPC and iceoryx2 shared memory into
 //!   one validated, bounded ingest path, policy versions out over both, counted per transport.
 //!   Policy versions are in the weights format of rfcl-policy.
+//! * [`stages`], [`checkpoint`], [`trainer`], [`limiter`]: the stage subscription, crash-safe
+//!   checkpoints, the training loop and its update-to-data limiter.
+//! * [`server`]: the learner service, `Server::start(bound, inputs)` then `serve(stops)`: the
+//!   training thread, gRPC, metrics and the stage subscription as named tasks under one
+//!   supervisor.
 pub mod adam;
 pub mod batch;
 pub mod bench;
@@ -35,6 +42,7 @@ pub mod prom;
 pub mod replay;
 pub mod runtime;
 pub mod sac;
+pub mod server;
 pub mod service;
 pub mod shm;
 pub mod stages;

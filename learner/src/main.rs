@@ -14,8 +14,9 @@
 //! `--metrics-port` is given). Logs go to stderr. It stops after `train.steps` env steps,
 //! when the curriculum server ends the run, or on SIGINT/SIGTERM, each time with a final
 //! checkpoint and the exported policy (exit 0); a failure exits non-zero with a one-line error.
-use std::net::{IpAddr, SocketAddr};
-use std::path::{Path, PathBuf};
+//! The service itself is `rfcl_learner::server`; this binary loads, binds and calls it.
+use std::net::IpAddr;
+use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
@@ -23,14 +24,12 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use rfcl_core::config::{Device, RunConfig, StagePlan};
 use rfcl_core::demo::DemoSet;
-use rfcl_core::final_counters::{FinalCounters, LearnerCounts, FINAL_COUNTERS_FILE};
 use rfcl_learner::checkpoint::{self, Manifest};
-use rfcl_learner::service::{self, LearnerService, RunDescription};
+use rfcl_learner::server::{Bound, Inputs, Server};
 use rfcl_learner::stages;
-use rfcl_learner::trainer::{StopReason, Trainer, TrainerInputs};
+use rfcl_learner::trainer::Trainer;
 use rfcl_proto::auth::{ClientAuth, ServerAuth};
-use tokio::net::TcpListener;
-use tokio::sync::{mpsc, oneshot, watch};
+use tokio::sync::mpsc;
 
 #[derive(Parser)]
 #[command(
@@ -232,234 +231,38 @@ async fn run(args: Args) -> Result<()> {
     trainer.set_member_threads(member_threads);
     trainer.set_backend(cfg.learner.backend);
 
-    let listener = TcpListener::bind(SocketAddr::new(args.bind, args.port))
-        .await
-        .with_context(|| format!("binding the gRPC port {}:{}", args.bind, args.port))?;
-    let addr = listener.local_addr().context("reading the bound address")?;
-    let metrics_listener = match args.metrics_port {
-        Some(port) => {
-            let l = TcpListener::bind(SocketAddr::new(args.bind, port))
-                .await
-                .with_context(|| format!("binding the metrics port {}:{port}", args.bind))?;
-            let at = l
-                .local_addr()
-                .context("reading the bound metrics address")?;
-            Some((l, at))
-        }
-        None => None,
-    };
-    let layout = trainer.layout();
-    let info = RunDescription {
-        run_name: cfg.name.clone(),
-        env_id: trainer.env_id().to_string(),
-        obs_dim: layout.obs_dim as u32,
-        action_dim: layout.action_dim as u32,
-        curriculum_addr: args.curriculum.clone(),
-        config_yaml: trainer.config_yaml().to_string(),
-        run_seed: cfg.seed,
-        learner_hostname: hostname(),
-        run_id: rfcl_shm::new_run_id(),
-        host_identity: rfcl_shm::host_identity(),
-        shm: None,
-        action_scale: trainer.action_scale().map(<[f32]>::to_vec),
-    };
-    let counters = rfcl_learner::ingest::IngestCounters::new();
-
-    let (data_tx, data_rx) = mpsc::channel(args.queue_batches.max(1));
-    let (stage_tx, stage_rx) = mpsc::unbounded_channel();
-    let (shutdown_tx, shutdown_rx) = watch::channel(false);
-    let (stopping_tx, stopping_rx) = watch::channel(false);
-    // Same-host actors: transitions in and policies out over iceoryx2 (learner/src/shm.rs).
-    let shm = (!args.no_shm)
-        .then(|| {
-            rfcl_learner::shm::ShmTransport::start_for(
-                &info,
-                layout,
-                &status,
-                &data_tx,
-                &policy_rx,
-                &counters,
-                &stopping_rx,
-            )
-        })
-        .transpose()
-        .context("starting the shared-memory transport (--no-shm serves gRPC only)")?;
-    let info = RunDescription {
-        shm: shm.as_ref().map(|s| s.names.clone()),
-        ..info
-    };
-    let service = LearnerService::new(
-        info,
-        status.clone(),
-        data_tx,
-        policy_rx,
-        stopping_rx.clone(),
-        counters.clone(),
-        server_auth.guard.clone(),
-    )
-    .with_transition_batch(cfg.service.transition_batch);
-
-    // Every task here serves until the stop: one that ends or fails earlier stops the learner
-    // (after its final checkpoint) with an error naming it.
-    let mut tasks = rfcl_runtime::tasks::Tasks::default();
-    let metrics_url = match metrics_listener {
-        Some((listener, at)) => {
-            let mut stopped = stopping_rx.clone();
-            let metrics = trainer.metrics();
-            metrics.add_collector(counters.clone());
-            metrics.add_collector(std::sync::Arc::new(rfcl_learner::prom::Unauthenticated(
-                server_auth.guard.clone(),
-            )));
-            let serve = rfcl_learner::prom::serve(listener, metrics, async move {
-                let _ = stopped.wait_for(|s| *s).await;
-            });
-            tasks.spawn("metrics server", async move {
-                serve.await.context("serving /metrics")
-            });
-            let url = rfcl_learner::prom::describe(at);
-            tracing::info!("Prometheus metrics at {url}");
-            Some(url)
-        }
-        None => None,
-    };
-    // The one machine-readable line on stdout: `rfcl train` and tests read the address from it.
-    let grpc = addr.to_string();
-    let mut ready = vec![("grpc", grpc.as_str())];
-    ready.extend(metrics_url.as_deref().map(|url| ("metrics", url)));
-    println!("{}", rfcl_core::ready::ReadyLine::new("learner", &ready));
-
-    // The first subscription was made before this learner could serve; subscribe again with its
-    // address so that the curriculum server's dashboard polls its Health. The new stream's first
-    // announcement goes to the trainer too, in case the stage moved in between.
-    let advertise = args
-        .advertise
-        .clone()
-        .unwrap_or_else(|| advertised_url(addr, server_auth.tls()));
-    rfcl_proto::convert::learner_addr(&rfcl_proto::v1::WatchStageRequest {
-        learner_addr: advertise.clone(),
-    })
-    .context("--advertise (RFCL_LEARNER_ADVERTISE)")?;
-    let stage_stream = match stages::open(&args.curriculum, &client_auth, timeout, &advertise).await
-    {
-        Ok((announced, current)) => {
-            drop(stage_stream);
-            let _ = stage_tx.send(current);
-            tracing::info!("announced to the curriculum server at {advertise}");
-            announced
-        }
-        // Training does not need the panel: go on with the first subscription, which announces
-        // this learner once it is re-opened.
-        Err(e) => {
-            tracing::warn!(
-                "could not announce this learner at {advertise} to the curriculum server ({}); its dashboard shows no learner panel until the stage subscription is re-opened",
-                rfcl_learner::error::chain(&e)
-            );
-            stage_stream
-        }
-    };
-    let follow = stages::follow(
-        args.curriculum.clone(),
-        client_auth,
-        advertise,
-        stage_stream,
-        stage_tx,
-        stopping_rx.clone(),
-    );
-    let mut stopped = stopping_rx.clone();
-    tasks.spawn("stage subscription", async move {
-        follow.await;
-        // It also ends when the training thread, its receiver, is done: wait for the stop then.
-        let _ = stopped.wait_for(|s| *s).await;
-        Ok(())
-    });
-    let inputs = TrainerInputs {
-        data: data_rx,
-        stages: stage_rx,
-        shutdown: shutdown_rx,
-        runtime: tokio::runtime::Handle::current(),
-    };
-    let (done_tx, mut done_rx) = oneshot::channel();
-    std::thread::Builder::new()
-        .name("trainer".into())
-        .spawn(move || {
-            let _ = done_tx.send(trainer.run(inputs, first_stage));
-        })
-        .context("starting the training thread")?;
-    let mut stopped = stopping_rx.clone();
-    let serve = service::serve(listener, service, server_auth, async move {
-        let _ = stopped.wait_for(|s| *s).await;
-    });
-    tasks.spawn(
-        "gRPC server",
-        async move { serve.await.context("gRPC server") },
-    );
-
-    let mut failed = None;
-    let outcome = tokio::select! {
-        done = &mut done_rx => done,
-        e = tasks.first_end() => {
-            tracing::error!("{e:#}: finishing (final checkpoint)");
-            failed = Some(e);
-            let _ = shutdown_tx.send(true);
-            (&mut done_rx).await
-        }
-        _ = signals.recv() => {
-            tracing::info!("signal received: finishing (final checkpoint); signal again to abort");
-            let _ = shutdown_tx.send(true);
-            tokio::select! {
-                done = &mut done_rx => done,
-                _ = signals.recv() => bail!("aborted by a second signal before the final checkpoint"),
+    let bound = Bound::bind(args.bind, args.port, args.metrics_port).await?;
+    let server = Server::start(
+        bound,
+        Inputs {
+            cfg,
+            run_dir,
+            trainer,
+            policy: policy_rx,
+            status,
+            curriculum: args.curriculum.clone(),
+            first_stage,
+            stage_stream,
+            connect_timeout: timeout,
+            advertise: args.advertise.clone(),
+            queue_batches: args.queue_batches,
+            shm: !args.no_shm,
+            server_auth,
+            client_auth,
+        },
+    )?;
+    println!("{}", server.ready_line());
+    // Each signal is a stop request: the first finishes with a final checkpoint, a second aborts.
+    let (stop_tx, stop_rx) = mpsc::unbounded_channel();
+    tokio::spawn(async move {
+        loop {
+            signals.recv().await;
+            if stop_tx.send(()).is_err() {
+                break;
             }
         }
-    };
-    let _ = stopping_tx.send(true);
-    if let Some(shm) = shm {
-        let _ = tokio::task::spawn_blocking(move || shm.join(Duration::from_secs(5))).await;
-    }
-    let totals = counters.totals();
-    tracing::info!("transitions taken in: {totals}");
-    if matches!(outcome, Ok(Ok(_))) {
-        let s = status.snapshot();
-        let last = FinalCounters {
-            pid: std::process::id(),
-            counts: LearnerCounts {
-                env_steps: s.env_steps,
-                updates: s.critic_updates,
-                policy_version: s.policy_version,
-                shm_records: totals.shm_records,
-                grpc_records: totals.grpc_records,
-                shm_lost_records: totals.shm_lost_records,
-                refused_batches: totals.refused_batches,
-                dropped_stale_epoch: s.dropped_stale_epoch,
-                unused_records: totals.unused_records,
-            },
-        };
-        let path = run_dir.join(FINAL_COUNTERS_FILE);
-        let json = serde_json::to_vec_pretty(&last).expect("counters serialize");
-        if let Err(e) = rfcl_core::atomic::atomic_write(&path, &json) {
-            tracing::warn!("writing {}: {e}", path.display());
-        }
-    }
-    if let Err(e) = tasks.finish(Duration::from_secs(5)).await {
-        tracing::warn!("stopping: {e:#}");
-    }
-    if let Some(e) = failed {
-        return Err(e);
-    }
-    match outcome {
-        Ok(Ok(reason)) => {
-            let why = match reason {
-                StopReason::Budget => "train.steps reached",
-                StopReason::Signal => "stopped by a signal",
-                StopReason::CurriculumFinished => "the curriculum server ended the run",
-                StopReason::InputsClosed => "the ingest queue closed",
-            };
-            tracing::info!("learner done: {why}");
-            Ok(())
-        }
-        Ok(Err(e)) => Err(e).context("training"),
-        Err(_) => bail!("the training thread panicked"),
-    }
+    });
+    server.serve(stop_rx).await
 }
 
 /// The run config: `--config` with the overrides, or (resuming without `--config`) the config the
@@ -520,44 +323,4 @@ fn load_demos(args: &Args, cfg: &RunConfig) -> Result<DemoSet> {
         path.display()
     );
     Ok(demos)
-}
-
-/// The URL of this learner's gRPC as another host names it: the bound address, or this host's
-/// name when bound to every interface.
-fn advertised_url(bound: SocketAddr, tls: bool) -> String {
-    let scheme = if tls { "https" } else { "http" };
-    let host = match bound.ip() {
-        ip if ip.is_unspecified() => hostname(),
-        IpAddr::V6(ip) => format!("[{ip}]"),
-        IpAddr::V4(ip) => ip.to_string(),
-    };
-    format!("{scheme}://{host}:{}", bound.port())
-}
-
-fn hostname() -> String {
-    std::fs::read_to_string(Path::new("/proc/sys/kernel/hostname"))
-        .map(|s| s.trim().to_string())
-        .ok()
-        .filter(|s| !s.is_empty())
-        .or_else(|| std::env::var("HOSTNAME").ok())
-        .unwrap_or_else(|| "localhost".into())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_advertised_url_is_the_bound_address_or_the_host_name() {
-        let at = |ip: &str| SocketAddr::new(ip.parse().unwrap(), 50052);
-        assert_eq!(
-            advertised_url(at("127.0.0.1"), false),
-            "http://127.0.0.1:50052"
-        );
-        assert_eq!(advertised_url(at("::1"), true), "https://[::1]:50052");
-        assert_eq!(
-            advertised_url(at("0.0.0.0"), false),
-            format!("http://{}:50052", hostname())
-        );
-    }
 }
