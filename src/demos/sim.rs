@@ -67,6 +67,31 @@ pub fn python_program() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from("python3"))
 }
 
+/// Starts [`python_program`] with `args` (in `dir` when given), unbuffered, stdin closed, stdout
+/// and stderr piped.
+pub fn spawn_python<S: AsRef<std::ffi::OsStr>>(
+    args: impl IntoIterator<Item = S>,
+    dir: Option<&Path>,
+) -> Result<std::process::Child> {
+    let python = python_program();
+    let mut command = Command::new(&python);
+    command
+        .args(args)
+        .env("PYTHONUNBUFFERED", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    if let Some(dir) = dir {
+        command.current_dir(dir);
+    }
+    command.spawn().with_context(|| {
+        format!(
+            "starting {} (set {PYTHON_ENV} to the venv's python, e.g. .venv/bin/python)",
+            python.display()
+        )
+    })
+}
+
 /// Whether `env` names a ManiSkill3 task `rfcl demos generate` can plan.
 pub fn is_maniskill_env(env: &str) -> bool {
     MOTION_PLANNED.contains(&env)
@@ -358,19 +383,7 @@ enum Tool {
 fn run_tool(bar: &ProgressBar, tool: Tool, args: &[&str], dir: &Path) -> Result<()> {
     let python = python_program();
     let shown = format!("{} {}", python.display(), args.join(" "));
-    let mut child = Command::new(&python)
-        .args(args)
-        .current_dir(dir)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .with_context(|| {
-            format!(
-                "starting {} (set {PYTHON_ENV} to the venv's python, e.g. .venv/bin/python)",
-                python.display()
-            )
-        })?;
+    let mut child = spawn_python(args, Some(dir))?;
     // stdout on a thread, stderr here; both feed the tail and the progress.
     let stdout = child.stdout.take().expect("piped");
     let out_thread = std::thread::spawn(move || {

@@ -14,13 +14,12 @@
 use std::collections::VecDeque;
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
-use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::demo::DemoSet;
 
-use super::sim::{python_program, PYTHON_ENV};
+use super::sim::{python_program, spawn_python};
 
 /// `--env` prefix of MetaWorld tasks.
 pub const METAWORLD_PREFIX: &str = "metaworld/";
@@ -360,20 +359,14 @@ fn names() -> Vec<&'static str> {
 /// stderr, e.g. a traceback).
 fn run_demos_tool(bar: &ProgressBar, args: &[String], what: &str) -> Result<()> {
     let python = python_program();
-    let mut child = Command::new(&python)
-        .args(["-u", "-m", "rfcl_sim.demos"])
-        .args(args)
-        .env("PYTHONUNBUFFERED", "1")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .with_context(|| {
-            format!(
-                "{what}: starting {} (set {PYTHON_ENV} to the venv's python, e.g. .venv/bin/python)",
-                python.display()
-            )
-        })?;
+    let mut child = spawn_python(
+        ["-u", "-m", "rfcl_sim.demos"]
+            .into_iter()
+            .map(String::from)
+            .chain(args.iter().cloned()),
+        None,
+    )
+    .with_context(|| what.to_owned())?;
     let stderr = child.stderr.take().expect("piped");
     let err_thread = std::thread::spawn(move || {
         let mut text = String::new();

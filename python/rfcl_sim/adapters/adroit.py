@@ -40,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
-from .base import AdapterError, check_render_size
-from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs, headless_gl,
-                     render_env_kwargs)
+from .base import AdapterError
+from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs,
+                     render_env_kwargs, start_rendering)
 
 #: env id -> (task short name, horizon H of spec 8.3, task fields after qpos and qvel).
 TASKS: dict[str, tuple[str, int, tuple[tuple[str, int], ...]]] = {
@@ -74,16 +74,8 @@ def canonical_id(env_id: str) -> str:
 
 
 def make(env_id: str, **kwargs: Any) -> "AdroitAdapter":
-    """An Adroit adapter for ``env_id`` (see :func:`canonical_id`).
-
-    Keyword arguments, as in the run config's ``env`` section:
-
-    * ``max_episode_steps``: the horizon H (default: 200, Pen 100, spec 8.3);
-    * ``control_mode``: ``None`` or ``"default"`` (the env's joint position controller);
-    * ``env_kwargs``: a dict of env constructor arguments, from :data:`ENV_KWARGS`;
-    * ``seed``: seeds the RNG that unseeded resets draw their seeds from;
-    * ``render_size``: ``None`` (default: no rendering) or the pixels a side of the square frames of
-      :meth:`~rfcl_sim.adapters.base.Adapter.render` (module docs).
+    """An Adroit adapter for ``env_id`` (see :func:`canonical_id`); default horizon 200, Pen
+    100 (spec 8.3). Keyword arguments: :data:`~rfcl_sim.adapters.fields.MAKE_KWARGS`.
     """
     check_make_kwargs("adroit", env_id, kwargs)
     return AdroitAdapter(env_id, **kwargs)
@@ -103,9 +95,7 @@ class AdroitAdapter(FieldAdapter):
         seed: int | None = None,
         render_size: int | None = None,
     ) -> None:
-        self.render_size = check_render_size("adroit", render_size)
-        if self.render_size is not None:
-            headless_gl()  # before MuJoCo is imported
+        self.render_size = start_rendering("adroit", render_size)  # before MuJoCo is imported
         import gymnasium as gym
         import gymnasium_robotics
 

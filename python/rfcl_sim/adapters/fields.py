@@ -15,9 +15,16 @@ from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError
+from .base import Adapter, AdapterError, check_render_size
 
-#: Keyword arguments the suites' ``make`` accepts (the run config's env section).
+#: Keyword arguments the suites' ``make`` accepts (the run config's env section):
+#:
+#: * ``max_episode_steps``: the horizon H (default: the suite's, spec 8.3);
+#: * ``control_mode``: ``None`` or ``"default"`` (each suite has one controller);
+#: * ``env_kwargs``: a dict of env constructor arguments, from the suite's ``ENV_KWARGS``;
+#: * ``seed``: seeds the RNG that unseeded resets draw their seeds from;
+#: * ``render_size``: ``None`` (default: no rendering) or the pixels a side of the square frames
+#:   of :meth:`~rfcl_sim.adapters.base.Adapter.render`.
 MAKE_KWARGS = ("max_episode_steps", "control_mode", "env_kwargs", "seed", "render_size")
 #: The env constructor arguments that ``render_size`` sets, so ``env_kwargs`` must not.
 RENDER_ENV_KWARGS = ("render_mode", "width", "height")
@@ -81,6 +88,15 @@ def render_env_kwargs(suite: str, env_id: str, env_kwargs: dict[str, Any],
         )
     return {**env_kwargs, "render_mode": "rgb_array", "width": render_size,
             "height": render_size}
+
+
+def start_rendering(suite: str, render_size: Any) -> int | None:
+    """The checked ``render_size`` (:func:`~rfcl_sim.adapters.base.check_render_size`); with one,
+    :func:`headless_gl` is set up, so call it before the suite imports MuJoCo."""
+    size = check_render_size(suite, render_size)
+    if size is not None:
+        headless_gl()
+    return size
 
 
 def headless_gl() -> str:

@@ -50,9 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from .base import AdapterError, check_render_size
-from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs, headless_gl,
-                     render_env_kwargs)
+from .base import AdapterError
+from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs,
+                     render_env_kwargs, start_rendering)
 
 #: Spec 8.3: MetaWorld tasks run for H = 200 steps (train and eval).
 DEFAULT_HORIZON = 200
@@ -80,16 +80,8 @@ def task_names() -> list[str]:
 
 
 def make(env_id: str, **kwargs: Any) -> "MetaWorldAdapter":
-    """A MetaWorld adapter for task ``env_id`` (e.g. ``"pick-place-v3"``).
-
-    Keyword arguments, as in the run config's ``env`` section:
-
-    * ``max_episode_steps``: the horizon H (default 200, spec 8.3);
-    * ``control_mode``: ``None`` or ``"default"`` (MetaWorld has one controller);
-    * ``env_kwargs``: a dict of Sawyer env arguments, one of :data:`ENV_KWARGS`;
-    * ``seed``: seeds the RNG that unseeded resets draw their seeds from;
-    * ``render_size``: ``None`` (default: no rendering) or the pixels a side of the square frames of
-      :meth:`~rfcl_sim.adapters.base.Adapter.render` (module docs).
+    """A MetaWorld adapter for task ``env_id`` (e.g. ``"pick-place-v3"``); default horizon 200
+    (spec 8.3). Keyword arguments: :data:`~rfcl_sim.adapters.fields.MAKE_KWARGS`.
     """
     check_make_kwargs("metaworld", env_id, kwargs)
     return MetaWorldAdapter(env_id, **kwargs)
@@ -109,9 +101,7 @@ class MetaWorldAdapter(FieldAdapter):
         seed: int | None = None,
         render_size: int | None = None,
     ) -> None:
-        self.render_size = check_render_size("metaworld", render_size)
-        if self.render_size is not None:
-            headless_gl()  # before MuJoCo is imported
+        self.render_size = start_rendering("metaworld", render_size)  # before MuJoCo is imported
         import gymnasium as gym
         import metaworld  # noqa: F401  (registers the Meta-World/* env ids)
 
