@@ -898,6 +898,21 @@ mod tests {
         }
     }
 
+    /// A checkpoint with the default progress and the limiter every test here uses.
+    fn try_save(dir: &Path, sac: &Sac, replay: &mut Replay) -> Result<Saved> {
+        let limiter = UtdLimiter::new(UtdMode::Sync, 4, 2, 0);
+        save(
+            dir,
+            sac,
+            replay,
+            &extras_for(&Progress::default(), &limiter),
+        )
+    }
+
+    fn save_plain(dir: &Path, sac: &Sac, replay: &mut Replay) -> Saved {
+        try_save(dir, sac, replay).unwrap()
+    }
+
     fn push_rows(buffer: &mut ReplayBuffer, range: std::ops::Range<usize>) {
         for i in range {
             let x = i as f32;
@@ -942,29 +957,16 @@ mod tests {
         offline.set_segment_rows(10).unwrap();
         push_rows(&mut offline, 100..112);
         let mut replay = Replay::new(online, Some(offline), 1);
-        let (progress, limiter) = (Progress::default(), UtdLimiter::new(UtdMode::Sync, 4, 2, 0));
         let dir = tempfile::tempdir().unwrap();
 
-        let first = save(
-            dir.path(),
-            &sac,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let first = save_plain(dir.path(), &sac, &mut replay);
         let row = ReplayBuffer::record_bytes(3, 2) as u64;
         assert_eq!(first.replay_files_written, 4 + 2);
         assert_eq!(first.replay_bytes_written, (35 + 12) * row);
 
         // Rows 35..38 land in online segment 3 (rows 30..40): only it is written again.
         push_rows(&mut replay.online, 35..38);
-        let second = save(
-            dir.path(),
-            &sac,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let second = save_plain(dir.path(), &sac, &mut replay);
         assert_eq!(second.replay_files_written, 1);
         assert_eq!(second.replay_bytes_written, 8 * row);
         assert_eq!(second.manifest.replay_bytes, (38 + 12) * row);
@@ -982,13 +984,7 @@ mod tests {
             ]
         );
         // Nothing new: nothing written.
-        let third = save(
-            dir.path(),
-            &sac,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let third = save_plain(dir.path(), &sac, &mut replay);
         assert_eq!(third.replay_files_written, 0);
 
         let manifest = read_manifest(dir.path()).unwrap().unwrap();
@@ -1011,26 +1007,13 @@ mod tests {
         push_rows(&mut online, 0..23);
         assert_eq!((online.len(), online.cursor()), (10, 3));
         let mut replay = Replay::new(online, None, 1);
-        let (progress, limiter) = (Progress::default(), UtdLimiter::new(UtdMode::Sync, 4, 2, 0));
         let dir = tempfile::tempdir().unwrap();
-        let first = save(
-            dir.path(),
-            &sac,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let first = save_plain(dir.path(), &sac, &mut replay);
         assert_eq!(first.replay_files_written, 3);
 
         // Slots 3, 4, 5 are overwritten: segments 0 and 1 change, segment 2 does not.
         push_rows(&mut replay.online, 23..26);
-        let second = save(
-            dir.path(),
-            &sac,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let second = save_plain(dir.path(), &sac, &mut replay);
         assert_eq!(second.replay_files_written, 2);
         assert_eq!(
             replay_files(dir.path()),
@@ -1050,13 +1033,7 @@ mod tests {
         assert_same_buffer(&replay.online, &restored.online);
         assert_eq!(replay.sample(2, 4).unwrap(), restored.sample(2, 4).unwrap());
         // The restored buffer knows its files: its next checkpoint writes no replay segment.
-        let again = save(
-            dir.path(),
-            &fresh,
-            &mut restored,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let again = save_plain(dir.path(), &fresh, &mut restored);
         assert_eq!(again.replay_files_written, 0);
 
         // A damaged segment is refused, naming the file: by restore, and by read_manifest, since
@@ -1130,15 +1107,7 @@ mod tests {
         restore(dir.path(), &m, &mut fresh).unwrap();
         // The next checkpoint is generation 3 and keeps the whole one (1) as its fallback.
         let mut replay = filled_replay(1);
-        let progress = Progress::default();
-        let limiter = UtdLimiter::new(UtdMode::Sync, 4, 2, 0);
-        let saved = save(
-            dir.path(),
-            &fresh,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let saved = save_plain(dir.path(), &fresh, &mut replay);
         assert_eq!(saved.manifest.generation, 3);
         let previous = read_one(dir.path(), PREVIOUS).unwrap().unwrap();
         assert_eq!(previous.generation, 1);
@@ -1194,26 +1163,13 @@ mod tests {
         let (cfg, net) = small();
         let sac = Sac::new(3, 2, &cfg, &net, 5).unwrap();
         let mut replay = filled_replay(1);
-        let (progress, limiter) = (Progress::default(), UtdLimiter::new(UtdMode::Sync, 4, 2, 0));
         let dir = tempfile::tempdir().unwrap();
-        let first = save(
-            dir.path(),
-            &sac,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap();
+        let first = save_plain(dir.path(), &sac, &mut replay);
         let (name, var) = sac.critic_vars().variables().into_iter().next().unwrap();
         tch::no_grad(|| {
             let _ = var.shallow_clone().fill_(f64::NAN);
         });
-        let err = save(
-            dir.path(),
-            &sac,
-            &mut replay,
-            &extras_for(&progress, &limiter),
-        )
-        .unwrap_err();
+        let err = try_save(dir.path(), &sac, &mut replay).unwrap_err();
         assert!(
             matches!(&err, CheckpointError::NonFinite { tensor } if *tensor == format!("critic/{name}")),
             "{err}"
