@@ -218,41 +218,40 @@ async fn bad_reports_get_clear_statuses_and_change_nothing() {
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
     let before = curriculum_part(&server.view());
 
-    let mut malformed = report_for(&lease, true, 1.0);
-    malformed.lease_id = 0;
-    let status = client.report(malformed).await.unwrap_err();
-    assert_eq!(status.code(), tonic::Code::InvalidArgument);
-    assert!(
-        status.message().contains("EpisodeReport.lease_id"),
-        "{}",
-        status.message()
-    );
-
-    let mut nan = report_for(&lease, true, 1.0);
-    nan.episode_return = f64::NAN;
-    let status = client.report(nan).await.unwrap_err();
-    assert_eq!(status.code(), tonic::Code::InvalidArgument);
-    assert!(status.message().contains("episode_return"));
-
-    let mut unknown = report_for(&lease, true, 1.0);
-    unknown.lease_id = 999_999;
-    let status = client.report(unknown).await.unwrap_err();
-    assert_eq!(status.code(), tonic::Code::NotFound);
-    assert!(
-        status.message().contains("lease 999999 is unknown"),
-        "{}",
-        status.message()
-    );
-
-    let mut other_epoch = report_for(&lease, true, 1.0);
-    other_epoch.stage_epoch = 5;
-    let status = client.report(other_epoch).await.unwrap_err();
-    assert_eq!(status.code(), tonic::Code::FailedPrecondition);
-    assert!(
-        status.message().contains("stage epoch 0") && status.message().contains("says 5"),
-        "{}",
-        status.message()
-    );
+    type Spoil = fn(&mut v1::EpisodeReport);
+    let refused: [(Spoil, tonic::Code, &[&str]); 4] = [
+        (
+            |r| r.lease_id = 0,
+            tonic::Code::InvalidArgument,
+            &["EpisodeReport.lease_id"],
+        ),
+        (
+            |r| r.episode_return = f64::NAN,
+            tonic::Code::InvalidArgument,
+            &["episode_return"],
+        ),
+        (
+            |r| r.lease_id = 999_999,
+            tonic::Code::NotFound,
+            &["lease 999999 is unknown"],
+        ),
+        (
+            |r| r.stage_epoch = 5,
+            tonic::Code::FailedPrecondition,
+            &["stage epoch 0", "says 5"],
+        ),
+    ];
+    for (spoil, code, says) in refused {
+        let mut report = report_for(&lease, true, 1.0);
+        spoil(&mut report);
+        let status = client.report(report).await.unwrap_err();
+        assert_eq!(status.code(), code, "{}", status.message());
+        assert!(
+            says.iter().all(|s| status.message().contains(s)),
+            "{}",
+            status.message()
+        );
+    }
 
     assert_eq!(
         curriculum_part(&server.view()),

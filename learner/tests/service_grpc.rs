@@ -15,12 +15,11 @@ const W: u64 = 8;
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn run_info_updates_on_schedule_and_whole_policy_versions() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "");
-    let curriculum = Curriculum::start(&config, &demos, &dir.path().join("run"));
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &dir.path().join("run"));
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let learner = Learner::start(&args);
+    let Pair {
+        config,
+        curriculum,
+        learner,
+    } = start_pair(dir.path(), W, 100_000, "", &[]);
     let mut client = learner.client().await;
 
     let info = client
@@ -115,16 +114,17 @@ async fn run_info_updates_on_schedule_and_whole_policy_versions() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sync_mode_never_lets_data_run_ahead_of_the_updates() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "  utd_mode: sync\n");
-    let curriculum = Curriculum::start(&config, &demos, &dir.path().join("run"));
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &dir.path().join("run"));
-    let mut args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    args.extend([
-        std::ffi::OsStr::new("--queue-batches"),
-        std::ffi::OsStr::new("2"),
-    ]);
-    let learner = Learner::start(&args);
+    let Pair {
+        config: _,
+        curriculum: _curriculum,
+        learner,
+    } = start_pair(
+        dir.path(),
+        W,
+        100_000,
+        "  utd_mode: sync\n",
+        &["--queue-batches", "2"],
+    );
     let mut pusher = learner.client().await;
     let mut watcher = learner.client().await;
 
@@ -155,12 +155,11 @@ async fn sync_mode_never_lets_data_run_ahead_of_the_updates() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn malformed_batches_get_invalid_argument_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "");
-    let curriculum = Curriculum::start(&config, &demos, &dir.path().join("run"));
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &dir.path().join("run"));
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let learner = Learner::start(&args);
+    let Pair {
+        config: _,
+        curriculum: _curriculum,
+        learner,
+    } = start_pair(dir.path(), W, 100_000, "", &[]);
     let mut client = learner.client().await;
 
     let good = batches(0..3, 3, 0).remove(0);
@@ -245,12 +244,11 @@ async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
     use rfcl_proto::auth::{authenticated, Token};
     use rfcl_proto::v1::learner_client::LearnerClient;
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "");
-    let curriculum = Curriculum::start(&config, &demos, &dir.path().join("run"));
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &dir.path().join("run"));
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let learner = Learner::start(&args);
+    let Pair {
+        config: _,
+        curriculum: _curriculum,
+        learner,
+    } = start_pair(dir.path(), W, 100_000, "", &[]);
     let channel = || async {
         tonic::transport::Channel::from_shared(learner.grpc.clone())
             .unwrap()

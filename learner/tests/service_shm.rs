@@ -73,16 +73,17 @@ impl Versions {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shared_memory_and_grpc_feed_one_ingest_and_policies_arrive_whole() {
     let dir = tempfile::tempdir().unwrap();
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "  utd_mode: sync\n");
-    let curriculum = Curriculum::start(&config, &demos, &dir.path().join("run"));
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &dir.path().join("run"));
-    let mut args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    args.extend([
-        std::ffi::OsStr::new("--queue-batches"),
-        std::ffi::OsStr::new("2"),
-    ]);
-    let learner = Learner::start(&args);
+    let Pair {
+        config,
+        curriculum: _curriculum,
+        learner,
+    } = start_pair(
+        dir.path(),
+        W,
+        100_000,
+        "  utd_mode: sync\n",
+        &["--queue-batches", "2"],
+    );
     let mut client = learner.client().await;
 
     // A process on another host is told gRPC; one on this host shared memory, with the services.

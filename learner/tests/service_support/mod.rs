@@ -155,6 +155,37 @@ impl Curriculum {
     }
 }
 
+/// A run in `dir/run` served by real processes: synthetic demos, a config (warm-up `seed_steps`,
+/// budget `steps`, `sac_extra` lines), its curriculum server, and a learner started with `flags`
+/// after the usual arguments.
+pub struct Pair {
+    pub config: PathBuf,
+    pub curriculum: Curriculum,
+    pub learner: Learner,
+}
+
+pub fn start_pair(
+    dir: &Path,
+    seed_steps: u64,
+    steps: u64,
+    sac_extra: &str,
+    flags: &[&str],
+) -> Pair {
+    let demos = write_demos(dir);
+    let config = write_config(dir, seed_steps, steps, sac_extra);
+    let run_dir = dir.join("run");
+    let curriculum = Curriculum::start(&config, &demos, &run_dir);
+    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
+    let mut args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    args.extend(flags.iter().map(std::ffi::OsStr::new));
+    let learner = Learner::start(&args);
+    Pair {
+        config,
+        curriculum,
+        learner,
+    }
+}
+
 /// A running `learner` child; killed when dropped. Its stderr is kept (`RFCL_TEST_LOGS=1` shows
 /// it as it comes).
 pub struct Learner {
