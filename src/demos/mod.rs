@@ -175,6 +175,9 @@ pub fn run(command: DemosCommand) -> Result<ExitCode> {
 
 pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
     use rfcl_actor::pointmaze::{self, demos};
+    if num == 0 {
+        bail!("-n must be at least 1");
+    }
     if sim::is_maniskill_env(env) {
         return sim::generate(env, num, out, seed);
     }
@@ -184,12 +187,7 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
     if !env.eq_ignore_ascii_case("pointmaze") && env != pointmaze::ENV_ID {
         bail!("`rfcl demos generate --env {env}` is not built yet: it takes pointmaze ({}) or a ManiSkill3 task with a motion planner ({}), or metaworld/<task> such as metaworld/pick-place-v3 (Adroit's demos are converted: `rfcl demos convert --help`)", pointmaze::ENV_ID, sim::MOTION_PLANNED.join(", "));
     }
-    if num == 0 {
-        bail!("-n must be at least 1");
-    }
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
+    create_parent(out)?;
     let set = demos::demo_set(demos::generate_demos(num as usize, seed), out);
     set.write(out)?;
     let lengths: Vec<usize> = set.demos.iter().map(|d| d.len()).collect();
@@ -199,4 +197,18 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
         rfcl_core::demo::DemoSet::sidecar_path(out).display()
     );
     Ok(())
+}
+
+/// Creates the folder `out` goes in, when it names one.
+fn create_parent(out: &Path) -> Result<()> {
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    Ok(())
+}
+
+/// `p` as UTF-8, for a Python tool's command line.
+fn path_str(p: &Path) -> Result<&str> {
+    p.to_str()
+        .with_context(|| format!("{} is not valid UTF-8", p.display()))
 }

@@ -24,6 +24,8 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
+use super::{create_parent, path_str};
+
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::demo::{Demo, DemoSet};
@@ -100,9 +102,6 @@ pub fn is_maniskill_env(env: &str) -> bool {
 /// `rfcl demos generate --env ENV -n N --out OUT --seed S` for a ManiSkill3 task: the first N
 /// successful episodes from motion-planning seeds S, S+1, ...
 pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
-    if num == 0 {
-        bail!("-n must be at least 1");
-    }
     let skipped = u32::try_from(seed)
         .ok()
         .filter(|s| s.checked_add(num).is_some())
@@ -351,9 +350,7 @@ fn write_first(set: &DemoSet, num: u32, out: &Path, verb: &str) -> Result<()> {
         .select(num as usize, false, 0)
         .with_context(|| format!("selecting {num} successful demos"))?;
     chosen.path = out.to_path_buf();
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
+    create_parent(out)?;
     chosen.write(out)?;
     let lengths: Vec<usize> = chosen.demos.iter().map(|d| d.len()).collect();
     let seeds: Vec<String> = chosen
@@ -474,11 +471,6 @@ fn temp_dir_near(out: &Path) -> Result<tempfile::TempDir> {
         .prefix(".rfcl-demos-")
         .tempdir_in(dir)
         .with_context(|| format!("creating a temporary directory in {}", dir.display()))
-}
-
-fn path_str(p: &Path) -> Result<&str> {
-    p.to_str()
-        .with_context(|| format!("{} is not valid UTF-8", p.display()))
 }
 
 #[cfg(test)]

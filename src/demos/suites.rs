@@ -20,6 +20,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::demo::DemoSet;
 
 use super::sim::{python_program, spawn_python};
+use super::{create_parent, path_str};
 
 /// `--env` prefix of MetaWorld tasks.
 pub const METAWORLD_PREFIX: &str = "metaworld/";
@@ -97,9 +98,6 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
                  metaworld/pick-place-v3"
             )
         })?;
-    if num == 0 {
-        bail!("-n must be at least 1");
-    }
     create_parent(out)?;
     let bar = bar(u64::from(num), format!("{task}: scripted demos"));
     let args: Vec<String> = vec![
@@ -477,18 +475,6 @@ fn bar(len: u64, message: String) -> ProgressBar {
     bar.set_message(message);
     bar.enable_steady_tick(std::time::Duration::from_millis(200));
     bar
-}
-
-fn create_parent(out: &Path) -> Result<()> {
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    Ok(())
-}
-
-fn path_str(p: &Path) -> Result<&str> {
-    p.to_str()
-        .with_context(|| format!("{} is not valid UTF-8", p.display()))
 }
 
 #[cfg(test)]

@@ -112,18 +112,16 @@ mod tests {
             ending_line(Ending::Interrupted, dir),
             "interrupted: continue with `rfcl train --resume runs/x`"
         );
-        assert_eq!(
-            ending_line(Ending::Budget, dir),
-            "run finished (step budget used); summary in runs/x/summary.json"
-        );
-        assert_eq!(
-            ending_line(Ending::Stage1Done, dir),
-            "run finished (stage 1 ended under train.stage_1_only); summary in runs/x/summary.json"
-        );
-        assert_eq!(
-            ending_line(Ending::EvalSuccess, dir),
-            "run finished (eval success reached); summary in runs/x/summary.json"
-        );
+        for (ending, why) in [
+            (Ending::Budget, "step budget used"),
+            (Ending::Stage1Done, "stage 1 ended under train.stage_1_only"),
+            (Ending::EvalSuccess, "eval success reached"),
+        ] {
+            assert_eq!(
+                ending_line(ending, dir),
+                format!("run finished ({why}); summary in runs/x/summary.json")
+            );
+        }
     }
 
     #[test]

@@ -192,36 +192,28 @@ mod tests {
 
     #[test]
     fn a_dead_service_is_restarted_with_backoff_until_it_dies_too_often() {
+        use ServiceDecision::{GiveUp, Restart};
         let mut p = RestartPolicy::default();
-        let learner = Service::Learner;
-        // Three deaths within the window: restarted after 1, 2, 4 s.
-        assert_eq!(
-            p.service_died(learner, 100.0),
-            ServiceDecision::Restart { delay_s: 1 }
-        );
-        assert_eq!(
-            p.service_died(learner, 110.0),
-            ServiceDecision::Restart { delay_s: 2 }
-        );
-        assert_eq!(
-            p.service_died(learner, 120.0),
-            ServiceDecision::Restart { delay_s: 4 }
-        );
-        // The other service keeps its own count.
-        assert_eq!(
-            p.service_died(Service::Curriculum, 125.0),
-            ServiceDecision::Restart { delay_s: 1 }
-        );
-        // The fourth within 600 s stops the run.
-        assert_eq!(
-            p.service_died(learner, 130.0),
-            ServiceDecision::GiveUp { deaths: 4 }
-        );
-        // Once the window has passed, the old deaths are forgotten.
-        assert_eq!(
-            p.service_died(learner, 800.0),
-            ServiceDecision::Restart { delay_s: 1 }
-        );
+        let (learner, server) = (Service::Learner, Service::Curriculum);
+        let deaths = [
+            // Three deaths within the window: restarted after 1, 2, 4 s.
+            (learner, 100.0, Restart { delay_s: 1 }),
+            (learner, 110.0, Restart { delay_s: 2 }),
+            (learner, 120.0, Restart { delay_s: 4 }),
+            // The other service keeps its own count.
+            (server, 125.0, Restart { delay_s: 1 }),
+            // The fourth within 600 s stops the run.
+            (learner, 130.0, GiveUp { deaths: 4 }),
+            // Once the window has passed, the old deaths are forgotten.
+            (learner, 800.0, Restart { delay_s: 1 }),
+        ];
+        for (service, at, decision) in deaths {
+            assert_eq!(
+                p.service_died(service, at),
+                decision,
+                "{service:?} at {at} s"
+            );
+        }
     }
 
     #[test]
