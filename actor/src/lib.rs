@@ -29,7 +29,7 @@ pub mod pointmaze;
 pub mod policy;
 pub mod python;
 pub mod replay;
-pub mod retry;
+mod retry;
 pub mod rollout;
 pub mod service;
 pub mod suite;

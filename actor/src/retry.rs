@@ -46,12 +46,6 @@ impl Backoff {
         self.attempts
     }
 
-    /// How long the current outage has lasted at `now` (zero when there is none).
-    pub fn outage(&self, now: Instant) -> Duration {
-        self.outage_since
-            .map_or(Duration::ZERO, |s| now.saturating_duration_since(s))
-    }
-
     /// A success: the next failure starts a new outage.
     pub fn reset(&mut self) {
         self.outage_since = None;
@@ -80,7 +74,6 @@ mod tests {
         );
         assert_eq!(b.next_delay(t0 + ms(2000)), None);
         assert_eq!(b.attempts(), 5);
-        assert_eq!(b.outage(t0 + ms(2000)), ms(2000));
     }
 
     #[test]
@@ -91,7 +84,7 @@ mod tests {
         b.next_delay(t0);
         b.next_delay(t0 + ms(900));
         b.reset();
-        assert_eq!(b.outage(t0 + ms(5000)), Duration::ZERO);
+        assert_eq!(b.attempts(), 0);
         assert_eq!(b.next_delay(t0 + ms(5000)), Some(ms(100)));
     }
 }

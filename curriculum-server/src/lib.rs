@@ -10,12 +10,12 @@
 //!   serialisable for snapshots.
 #![forbid(unsafe_code)]
 
-pub mod curriculum;
-pub mod difficulty;
+mod curriculum;
+mod difficulty;
 pub mod forward;
 pub mod rank;
-pub mod reverse;
-pub mod stage;
+mod reverse;
+mod stage;
 pub mod stop;
 
 pub use curriculum::{
@@ -38,12 +38,12 @@ pub use stage::{ReplanError, Stage, StageChange, StageMachine, StageStatus};
 pub mod bench;
 pub mod dashboard;
 pub mod dashboard_listener;
-pub mod grpc;
-pub mod learner_link;
-pub mod leases;
+mod grpc;
+mod learner_link;
+mod leases;
 pub mod server;
 pub mod service;
 pub mod snapshot;
 pub mod state;
 pub mod videos;
-pub mod views;
+mod views;

@@ -28,17 +28,17 @@
 //!   training thread, gRPC, metrics and the stage subscription as named tasks under one
 //!   supervisor.
 pub mod adam;
-pub mod batch;
+mod batch;
 pub mod bench;
 pub mod checkpoint;
-pub mod error;
+mod error;
 pub mod fused;
 pub mod ingest;
 pub mod limiter;
-pub mod members;
-pub mod metrics;
+mod members;
+mod metrics;
 pub mod nets;
-pub mod prom;
+mod prom;
 pub mod replay;
 pub mod runtime;
 pub mod sac;

@@ -36,9 +36,9 @@
 //! `trunk0.kernel` (`[obs_dim, H_0]`) and `mean.bias` (`[action_dim]`).
 #![forbid(unsafe_code)]
 
-pub mod format;
+mod format;
 pub mod mlp;
-pub mod net;
+mod net;
 
 pub use format::{
     encode_vars, load_vars, tensor_names, PolicyDescription, PolicyError, PolicyShape, FORMAT,

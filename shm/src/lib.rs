@@ -13,7 +13,7 @@
 #![forbid(unsafe_code)]
 
 pub mod frame;
-pub mod naming;
+mod naming;
 pub mod ports;
 
 pub use frame::{FrameError, PolicyHeader, TransitionHeader};
