@@ -374,7 +374,7 @@ fn stopped(stopping: &watch::Receiver<bool>) -> impl std::future::Future<Output 
 
 /// The URL of this learner's gRPC as another host names it: the bound address, or this host's
 /// name when bound to every interface.
-pub fn advertised_url(bound: SocketAddr, tls: bool) -> String {
+fn advertised_url(bound: SocketAddr, tls: bool) -> String {
     let scheme = if tls { "https" } else { "http" };
     let host = match bound.ip() {
         ip if ip.is_unspecified() => hostname(),
@@ -385,7 +385,7 @@ pub fn advertised_url(bound: SocketAddr, tls: bool) -> String {
 }
 
 /// This host's name (the kernel's, else `$HOSTNAME`, else `localhost`).
-pub fn hostname() -> String {
+fn hostname() -> String {
     std::fs::read_to_string(Path::new("/proc/sys/kernel/hostname"))
         .map(|s| s.trim().to_string())
         .ok()

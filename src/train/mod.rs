@@ -689,8 +689,7 @@ impl Session {
 
     /// Takes the curriculum server's state, if it answers, and records the evals it completes.
     async fn take_state(&mut self) {
-        if let Some(view) = self.monitor.fetch_state().await {
-            let fresh = self.monitor.take_view(view, self.wall_s());
+        if let Some(fresh) = self.monitor.poll_state(self.wall_s()).await {
             self.record_evals(fresh);
         }
     }

@@ -109,7 +109,7 @@ impl Monitor {
     }
 
     /// The curriculum's state, `None` when the server did not answer.
-    pub async fn fetch_state(&self) -> Option<RunState> {
+    async fn fetch_state(&self) -> Option<RunState> {
         fetch_run_state(&mut self.curriculum.clone()).await
     }
 
@@ -117,14 +117,9 @@ impl Monitor {
     /// the last call, or `None` when the server did not answer.
     pub async fn poll_state(&mut self, wall_s: f64) -> Option<Vec<CompleteEval>> {
         let view = self.fetch_state().await?;
-        Some(self.take_view(view, wall_s))
-    }
-
-    /// Keeps `view` as the latest state; the evaluations it completes.
-    pub fn take_view(&mut self, view: RunState, wall_s: f64) -> Vec<CompleteEval> {
         let fresh = self.evals.update(&view.evals, wall_s);
         self.last_view = Some(view);
-        fresh
+        Some(fresh)
     }
 
     /// Counts `service`'s answer or silence at run wall time `now`: what to do about it.
