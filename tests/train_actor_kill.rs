@@ -55,10 +55,9 @@ fn a_killed_actor_is_respawned_and_its_leases_expire() {
     })
     .unwrap_or_else(|| panic!("actor 0 was not respawned:\n{}", training.stderr()));
     assert!(alive(respawned));
-    let stderr = training.stderr();
-    assert!(
-        stderr.contains("actor-0 died (killed by signal 9); respawned it"),
-        "{stderr}"
+    training.wait_for_stderr(
+        &format!("actor-0 died (killed by signal 9); respawned it (pid {respawned})"),
+        Duration::from_secs(10),
     );
 
     // The leases the dead actor held expire after the timeout and are counted.

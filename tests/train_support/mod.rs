@@ -154,6 +154,18 @@ impl Training {
         std::fs::read_to_string(&self.stderr_path).unwrap_or_default()
     }
 
+    /// Waits until rfcl's stderr holds `line`; panics with the stderr after `limit`. rfcl says
+    /// what it did after doing it (a respawned actor is in processes.json a moment before the
+    /// line), so a test that saw the effect waits for the words too.
+    pub fn wait_for_stderr(&self, line: &str, limit: Duration) {
+        if wait_for(limit, || self.stderr().contains(line).then_some(())).is_none() {
+            panic!(
+                "no {line:?} within {limit:?} in rfcl's stderr:\n{}",
+                self.stderr()
+            );
+        }
+    }
+
     pub fn exited(&mut self) -> Option<ExitStatus> {
         self.child.try_wait().unwrap()
     }
