@@ -3,6 +3,10 @@ demo's reverse-curriculum frontier (t_i, the start state) against env steps, wit
 for the long runs of the hard tasks (benches/RESULTS.md).
 
     .venv/bin/python benches/run_curves.py RUN_DIR/summary.json --svg OUT.svg [--title TITLE]
+        [--beside OTHER_RUN/summary.json ...]
+
+`--beside` draws other runs' eval curves on the same axes (e.g. RLPD from the same demos, seed
+and settings, `train.mode: rlpd`), labelled by their run names.
 
 A run stopped and resumed over several sessions has one summary.json (its evals and frontiers
 span every session). Prints the Markdown rows of benches/RESULTS.md: the evals, and per demo its
@@ -24,6 +28,8 @@ def main() -> None:
     parser.add_argument("summary", type=Path)
     parser.add_argument("--svg", type=Path, required=True)
     parser.add_argument("--title", default=None)
+    parser.add_argument("--beside", type=Path, action="append", default=[],
+                        help="another run's summary.json whose eval curve is drawn beside")
     args = parser.parse_args()
     s = json.loads(args.summary.read_text())
     evals = s.get("evals", [])
@@ -53,7 +59,15 @@ def main() -> None:
 
     fig, (ax_eval, ax_front) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
     ax_eval.plot([e["env_steps"] for e in evals], [e.get("success_at_end", 0) for e in evals],
-                 marker="o", label="eval success at the end")
+                 marker="o", label=f"{s['run_name']}: eval success at the end")
+    for path in args.beside:
+        other = json.loads(path.read_text())
+        ev = other.get("evals", [])
+        ax_eval.plot([e["env_steps"] for e in ev], [e.get("success_at_end", 0) for e in ev],
+                     marker="s", linestyle="--", label=f"{other['run_name']}: eval success at the end")
+        print(f"beside: {other['run_name']} ({other['env_id']}), {other['env_steps']:,} env steps; "
+              f"evals (env steps: success at the end): "
+              + ", ".join(f"{e['env_steps']:,}: {e.get('success_at_end', 0):.2f}" for e in ev))
     ax_eval.set_ylabel("eval success")
     ax_eval.set_ylim(-0.05, 1.05)
     if s.get("stage_1_env_steps"):

@@ -23,17 +23,7 @@ fn rfcl() -> &'static str {
 }
 
 fn inspect(file: &Path) -> String {
-    let out = Command::new(rfcl())
-        .args(["demos", "inspect"])
-        .arg(file)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
+    succeed(Command::new(rfcl()).args(["demos", "inspect"]).arg(file))
 }
 
 #[test]
@@ -140,17 +130,12 @@ fn generated_demos_load_and_replay_their_success_flags() {
     );
     let raw = record.join("PickCube-v1/motionplanning/user.h5");
     let converted = dir.path().join("converted.h5");
-    let out = Command::new(rfcl())
-        .args(["demos", "convert"])
-        .arg(&raw)
-        .arg("--out")
-        .arg(&converted)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    succeed(
+        Command::new(rfcl())
+            .args(["demos", "convert"])
+            .arg(&raw)
+            .arg("--out")
+            .arg(&converted),
     );
     let report = inspect(&converted);
     assert!(

@@ -97,24 +97,18 @@ fn train(
 /// rfcl_sim), which must succeed: its stdout.
 fn python(script: &str) -> String {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let out = Command::new(root.join(".venv/bin/python"))
-        .args(["-c", script])
-        .env(
-            "PYTHONPATH",
-            format!(
-                "{}:{}",
-                example("").display(),
-                root.join("python").display()
+    succeed(
+        Command::new(root.join(".venv/bin/python"))
+            .args(["-c", script])
+            .env(
+                "PYTHONPATH",
+                format!(
+                    "{}:{}",
+                    example("").display(),
+                    root.join("python").display()
+                ),
             ),
-        )
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
+    )
 }
 
 #[test]

@@ -539,19 +539,7 @@ mod tests {
 
     #[test]
     fn sim_worker_restarts_add_up_over_reports_and_respawns() {
-        let metas = [DemoMeta {
-            success: vec![false, false, true],
-            reset_seed: Some(0),
-        }];
-        let cfg = RunConfig::default();
-        let demos = DemoResets {
-            state_dim: 1,
-            // 3 actions, so 4 states.
-            states: vec![vec![0.0, 1.0, 2.0, 3.0]],
-            reset: vec![ResetArgs::default()],
-            episode_ids: vec![0],
-        };
-        let mut state = ServerState::new(Curriculum::new(&cfg, &metas).unwrap(), 0.0);
+        let (cfg, demos, mut state) = one_demo();
         let mut report = |actor_id: u32, sim_restarts: u64| {
             let request = AcquireRequest {
                 actor_id,
@@ -560,18 +548,11 @@ mod tests {
             };
             let lease = state.acquire(request, &cfg, &demos, 1.0).unwrap();
             let report = EpisodeReport {
-                lease_id: lease.lease_id,
                 success_at_end: false,
                 success_once: false,
                 episode_return: 0.0,
-                length: 1,
-                policy_version: 0,
-                stage_epoch: lease.stage_epoch,
-                actor_id,
-                actor_env_steps: 0,
-                policy_env_steps: 0,
                 sim_restarts,
-                reset_failure: None,
+                ..report_of(&lease, actor_id, 1)
             };
             state.report(&report, &cfg, 1.0).unwrap();
         };
@@ -609,6 +590,7 @@ mod tests {
         let cfg = RunConfig::default();
         let demos = DemoResets {
             state_dim: 1,
+            // 3 actions, so 4 states.
             states: vec![vec![0.0, 1.0, 2.0, 3.0]],
             reset: vec![ResetArgs::default()],
             episode_ids: vec![0],

@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use rfcl_learner::checkpoint;
 use rfcl_policy::PolicyNet;
+use rfcl_testkit::child;
 use service_support::*;
 
 const W: u64 = 8;
@@ -90,18 +91,13 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
     let script = dir.path().join("rfcl_policy.py");
     std::fs::write(&script, policy_snippet()).unwrap();
     let obs = [0.3f32, -0.7, 0.05, 0.9];
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&run_dir)
-        .args(obs.iter().map(|o| o.to_string()))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let from_torch: Vec<f32> = serde_json::from_slice(&out.stdout).unwrap();
+    let from_torch: Vec<f32> = serde_json::from_str(&child::succeed(
+        Command::new(&python)
+            .arg(&script)
+            .arg(&run_dir)
+            .args(obs.iter().map(|o| o.to_string())),
+    ))
+    .unwrap();
     let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
     let agent = policy.act(&obs, true, &mut rng);
     // rfcl_actor::rollout::env_action: clip(a / s, -1, 1).
@@ -123,22 +119,17 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
         let code = "import json, sys; from rfcl_sim import load_policy; \
                     p = load_policy(sys.argv[1]); \
                     print(json.dumps(p([float(x) for x in sys.argv[2:]]).tolist()))";
-        let out = Command::new(&python)
-            .env(
-                "PYTHONPATH",
-                Path::new(env!("CARGO_MANIFEST_DIR")).join("../python"),
-            )
-            .args(["-c", code])
-            .arg(path)
-            .args(obs.iter().map(|o| o.to_string()))
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
+        let out = child::succeed(
+            Command::new(&python)
+                .env(
+                    "PYTHONPATH",
+                    Path::new(env!("CARGO_MANIFEST_DIR")).join("../python"),
+                )
+                .args(["-c", code])
+                .arg(path)
+                .args(obs.iter().map(|o| o.to_string())),
         );
-        serde_json::from_slice(&out.stdout).unwrap()
+        serde_json::from_str(&out).unwrap()
     };
     for path in [run_dir.clone(), run_dir.join("policy.safetensors")] {
         let from_numpy = numpy(&path);

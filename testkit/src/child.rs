@@ -53,6 +53,20 @@ pub fn output(cmd: &mut Command) -> Output {
         .unwrap_or_else(|e| panic!("waiting for {}: {e}", program(cmd)))
 }
 
+/// Runs `cmd` to completion like [`output`] and returns its stdout; panics with the command and
+/// its stderr when it fails.
+pub fn succeed(cmd: &mut Command) -> String {
+    let out = output(cmd);
+    assert!(
+        out.status.success(),
+        "{} failed ({}):\n{}",
+        program(cmd),
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
 /// Sets the run token of a test's services: `RFCL_TOKEN=token`, and no `RFCL_TOKEN_FILE` from the
 /// test's own environment.
 pub fn with_token<'a>(cmd: &'a mut Command, token: &str) -> &'a mut Command {

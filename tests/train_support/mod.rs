@@ -18,7 +18,7 @@ use serde_json::Value;
 
 // Not every test that includes this module signals.
 #[allow(unused_imports)]
-pub use rfcl_testkit::child::signal;
+pub use rfcl_testkit::child::{signal, succeed};
 
 pub mod sim;
 
@@ -317,17 +317,11 @@ pub fn wait_for<T>(limit: Duration, mut probe: impl FnMut() -> Option<T>) -> Opt
 
 /// `rfcl eval RUN_DIR -n N`: (success at the end, its output line).
 pub fn eval_run(run_dir: &Path, episodes: u32) -> (f64, String) {
-    let out = Command::new(rfcl())
-        .arg("eval")
-        .arg(run_dir)
-        .args(["-n", &episodes.to_string()])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout).to_string();
-    assert!(
-        out.status.success(),
-        "rfcl eval failed: {}",
-        String::from_utf8_lossy(&out.stderr)
+    let stdout = succeed(
+        Command::new(rfcl())
+            .arg("eval")
+            .arg(run_dir)
+            .args(["-n", &episodes.to_string()]),
     );
     let success = stdout
         .split("success ")
