@@ -12,22 +12,23 @@ use super::progress::CompleteEval;
 /// The bar's message: `stage 1 | eval 40% | 31.5 upd/s`.
 pub fn status(stage: u32, last_eval: Option<&CompleteEval>, updates_per_s: f64) -> String {
     let eval = last_eval.map_or("-".to_string(), |e| {
-        format!("{:.0}%", 100.0 * e.success_at_end)
+        format!("{:.0}%", 100.0 * e.point.success_at_end)
     });
     format!("stage {stage} | eval {eval} | {updates_per_s:.1} upd/s")
 }
 
 /// The line printed when an evaluation completes.
 pub fn eval_line(e: &CompleteEval) -> String {
+    let p = &e.point;
     format!(
         "eval at {} env steps (policy v{}): success {:.0}% at the end, {:.0}% once, mean return \
          {:.1} ({} episodes)",
-        e.env_steps,
-        e.policy_version,
-        100.0 * e.success_at_end,
-        100.0 * e.success_once,
-        e.mean_return,
-        e.episodes
+        p.env_steps,
+        p.policy_version,
+        100.0 * p.success_at_end,
+        100.0 * p.success_once,
+        p.mean_return,
+        p.episodes
     )
 }
 
@@ -117,15 +118,18 @@ impl Bar {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rfcl_core::run_state::EvalPoint;
 
     fn eval(success: f64) -> CompleteEval {
         CompleteEval {
-            policy_version: 12,
-            env_steps: 40_000,
-            episodes: 50,
-            success_at_end: success,
-            success_once: 0.5,
-            mean_return: 3.26,
+            point: EvalPoint {
+                policy_version: 12,
+                env_steps: 40_000,
+                episodes: 50,
+                success_at_end: success,
+                success_once: 0.5,
+                mean_return: 3.26,
+            },
             wall_s: 100.0,
         }
     }

@@ -627,7 +627,7 @@ impl Session {
                 .evals
                 .evals()
                 .iter()
-                .any(|e| e.policy_version >= final_policy)
+                .any(|e| e.point.policy_version >= final_policy)
             {
                 return true;
             }

@@ -15,16 +15,13 @@ pub use rfcl_curriculum::stop::STOP_WINDOW;
 /// Success thresholds reported in the summary.
 pub const THRESHOLDS: [f64; 2] = [0.5, 0.9];
 
-/// One complete evaluation (spec 5.7): a policy version, the learner's env steps when it was
-/// published, and its outcomes over all its episodes.
+/// One complete evaluation (spec 5.7): the curriculum server's eval point (a policy version, the
+/// learner's env steps when it was published, its outcomes over all its episodes) once it has
+/// all its episodes.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CompleteEval {
-    pub policy_version: u64,
-    pub env_steps: u64,
-    pub episodes: u64,
-    pub success_at_end: f64,
-    pub success_once: f64,
-    pub mean_return: f64,
+    #[serde(flatten)]
+    pub point: EvalPoint,
     /// Run wall time (over every session of the run) at which `rfcl train` saw it complete.
     pub wall_s: f64,
 }
@@ -127,7 +124,7 @@ impl EvalTracker {
             episodes_needed: episodes_needed.max(1),
             complete: earlier
                 .iter()
-                .map(|e| (e.policy_version, e.clone()))
+                .map(|e| (e.point.policy_version, e.clone()))
                 .collect(),
         }
     }
@@ -140,12 +137,7 @@ impl EvalTracker {
                 continue;
             }
             let eval = CompleteEval {
-                policy_version: p.policy_version,
-                env_steps: p.env_steps,
-                episodes: p.episodes,
-                success_at_end: p.success_at_end,
-                success_once: p.success_once,
-                mean_return: p.mean_return,
+                point: p.clone(),
                 wall_s,
             };
             self.complete.insert(p.policy_version, eval.clone());
@@ -157,13 +149,17 @@ impl EvalTracker {
     /// Complete evals in env-step order.
     pub fn evals(&self) -> Vec<CompleteEval> {
         let mut all: Vec<CompleteEval> = self.complete.values().cloned().collect();
-        all.sort_by_key(|e| (e.env_steps, e.policy_version));
+        all.sort_by_key(|e| (e.point.env_steps, e.point.policy_version));
         all
     }
 
     /// Mean success-at-end of the last [`STOP_WINDOW`] complete evals, once there are that many.
     pub fn running_mean(&self) -> Option<f64> {
-        let rates: Vec<f64> = self.evals().iter().map(|e| e.success_at_end).collect();
+        let rates: Vec<f64> = self
+            .evals()
+            .iter()
+            .map(|e| e.point.success_at_end)
+            .collect();
         rfcl_curriculum::stop::running_mean(&rates)
     }
 
@@ -174,10 +170,10 @@ impl EvalTracker {
         let evals = self.evals();
         (evals.len() >= STOP_WINDOW).then(|| {
             let window = &evals[evals.len() - STOP_WINDOW..];
-            let episodes: u64 = window.iter().map(|e| e.episodes).sum();
+            let episodes: u64 = window.iter().map(|e| e.point.episodes).sum();
             let successes: f64 = window
                 .iter()
-                .map(|e| e.success_at_end * e.episodes as f64)
+                .map(|e| e.point.success_at_end * e.point.episodes as f64)
                 .sum();
             wilson_interval(successes, episodes, Z_95)
         })
@@ -195,7 +191,7 @@ impl EvalTracker {
     pub fn first_reaching(&self, threshold: f64) -> Option<CompleteEval> {
         self.evals()
             .into_iter()
-            .find(|e| e.success_at_end >= threshold)
+            .find(|e| e.point.success_at_end >= threshold)
     }
 
     pub fn last(&self) -> Option<CompleteEval> {
@@ -206,7 +202,10 @@ impl EvalTracker {
     /// evaluation point (spec 5.7) is past the newest complete evaluation's.
     pub fn final_eval_pending(&self, env_steps: u64, eval_freq: u64, num_seed_steps: u64) -> bool {
         let point = |steps| eval_point(steps, eval_freq, num_seed_steps);
-        let evaluated = self.last().and_then(|e| point(e.env_steps)).unwrap_or(0);
+        let evaluated = self
+            .last()
+            .and_then(|e| point(e.point.env_steps))
+            .unwrap_or(0);
         point(env_steps).is_some_and(|p| p > evaluated)
     }
 }
@@ -474,8 +473,8 @@ pub fn summarize(
     // summary says so (`learner_counters: last_poll`); a final reply is taken as it is.
     let mut counts = learner.counts;
     if let (CountersSource::LastPoll, Some(last)) = (learner.source, evals.last()) {
-        counts.env_steps = counts.env_steps.max(last.env_steps);
-        counts.policy_version = counts.policy_version.max(last.policy_version);
+        counts.env_steps = counts.env_steps.max(last.point.env_steps);
+        counts.policy_version = counts.policy_version.max(last.point.policy_version);
     }
     let env_steps_accounting = StepAccounting::new(
         counts.env_steps,
@@ -499,9 +498,9 @@ pub fn summarize(
             let hit = evals.first_reaching(threshold);
             Milestone {
                 threshold,
-                env_steps: hit.as_ref().map(|e| e.env_steps),
+                env_steps: hit.as_ref().map(|e| e.point.env_steps),
                 wall_s: hit.as_ref().map(|e| e.wall_s),
-                policy_version: hit.as_ref().map(|e| e.policy_version),
+                policy_version: hit.as_ref().map(|e| e.point.policy_version),
             }
         })
         .collect();
@@ -570,7 +569,7 @@ mod tests {
         assert!(t.update(&[point(3, 3000, 4, 0.0)], 1.0).is_empty());
         let fresh = t.update(&[point(3, 3000, 10, 0.2), point(5, 5000, 9, 1.0)], 2.0);
         assert_eq!(fresh.len(), 1);
-        assert_eq!((fresh[0].policy_version, fresh[0].wall_s), (3, 2.0));
+        assert_eq!((fresh[0].point.policy_version, fresh[0].wall_s), (3, 2.0));
         // Seen again (more episodes): not new, and the recorded time stays.
         assert!(t.update(&[point(3, 3000, 12, 0.3)], 3.0).is_empty());
         assert_eq!(t.evals()[0].wall_s, 2.0);
@@ -622,19 +621,21 @@ mod tests {
         assert!(!t.reached(Some(0.99)));
         assert!(!t.reached(None));
         let first90 = t.first_reaching(0.9).unwrap();
-        assert_eq!((first90.policy_version, first90.env_steps), (3, 3000));
-        assert_eq!(t.first_reaching(0.5).unwrap().policy_version, 2);
+        assert_eq!(
+            (first90.point.policy_version, first90.point.env_steps),
+            (3, 3000)
+        );
+        assert_eq!(t.first_reaching(0.5).unwrap().point.policy_version, 2);
     }
 
     #[test]
     fn a_resumed_tracker_keeps_earlier_evals_and_their_times() {
         let earlier = vec![CompleteEval {
-            policy_version: 2,
-            env_steps: 2000,
-            episodes: 10,
-            success_at_end: 0.95,
-            success_once: 1.0,
-            mean_return: 3.0,
+            point: EvalPoint {
+                success_once: 1.0,
+                mean_return: 3.0,
+                ..point(2, 2000, 10, 0.95)
+            },
             wall_s: 42.0,
         }];
         let mut t = EvalTracker::new(10, &earlier);
@@ -752,7 +753,7 @@ mod tests {
         assert_eq!(s.to_success[0].env_steps, Some(2000));
         assert_eq!(s.to_success[1].env_steps, Some(3000));
         assert_eq!(s.to_success[1].wall_s, Some(7.0));
-        assert_eq!(s.final_eval.as_ref().unwrap().policy_version, 3);
+        assert_eq!(s.final_eval.as_ref().unwrap().point.policy_version, 3);
         assert_eq!(s.eval_success_mean_last_5, None);
         assert_eq!(s.train_success_rate, Some(0.75));
         assert_eq!((s.expired_leases, s.refused_reports), (4, 6));
