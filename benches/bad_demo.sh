@@ -19,30 +19,19 @@
 # Prints a Markdown table per run and the mean over seeds.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# shellcheck source=benches/lib.sh
+source benches/lib.sh
 
 seeds=1,2
 steps=300000
 demos=runs/demos/pointmaze.h5
 out=runs/bad_demo
-while [[ $# -gt 0 ]]; do
-    case $1 in
-        --seeds) seeds=$2; shift 2 ;;
-        --steps) steps=$2; shift 2 ;;
-        --demos) demos=$2; shift 2 ;;
-        --out) out=$2; shift 2 ;;
-        -h|--help) sed -n '2,19p' "$0"; exit 0 ;;
-        *) echo "bad_demo.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
-    esac
-done
+parse_flags "$0" seeds steps demos out -- "$@"
 
-rfcl=target/release/rfcl
-[[ -x $rfcl ]] || { echo "bad_demo.sh: $rfcl is not built (cargo build --release)" >&2; exit 1; }
+need_rfcl "$0"
 python=python3
 [[ -x .venv/bin/python ]] && python=.venv/bin/python
-if [[ ! -f $demos ]]; then
-    mkdir -p "$(dirname "$demos")"
-    "$rfcl" demos generate --env pointmaze -n 5 --out "$demos"
-fi
+demos_or_generate pointmaze "$demos"
 mkdir -p "$out"
 
 if [[ ! -f $out/bad.h5 ]]; then

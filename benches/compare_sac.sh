@@ -19,6 +19,8 @@
 # every run's report, the loads, and per round and schedule the ratio rust / jax.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# shellcheck source=benches/lib.sh
+source benches/lib.sh
 
 threads=$(nproc)
 rounds=2
@@ -26,20 +28,8 @@ windows=3
 seconds=5
 schedules=80/20,16/1
 max_load=0.5
-max_wait=600
-while [[ $# -gt 0 ]]; do
-    case $1 in
-        --threads) threads=$2; shift 2 ;;
-        --rounds) rounds=$2; shift 2 ;;
-        --windows) windows=$2; shift 2 ;;
-        --seconds) seconds=$2; shift 2 ;;
-        --schedules) schedules=$2; shift 2 ;;
-        --max-load) max_load=$2; shift 2 ;;
-        --max-wait-s) max_wait=$2; shift 2 ;;
-        -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
-        *) echo "compare_sac.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
-    esac
-done
+max_wait_s=600
+parse_flags "$0" threads rounds windows seconds schedules max_load max_wait_s -- "$@"
 if [[ ! -x .venv/bin/python ]]; then
     echo "compare_sac.sh: .venv is missing (scripts/setup.sh creates it)" >&2; exit 1
 fi
@@ -74,8 +64,8 @@ load1() { cut -d' ' -f1 /proc/loadavg; }
 wait_quiet() {
     local waited=0
     while awk -v l="$(load1)" -v m="$max_load" 'BEGIN { exit !(l >= m) }'; do
-        if (( waited >= max_wait )); then
-            echo "load $(load1) still >= $max_load after ${max_wait}s: measuring anyway" >&2
+        if (( waited >= max_wait_s )); then
+            echo "load $(load1) still >= $max_load after ${max_wait_s}s: measuring anyway" >&2
             break
         fi
         sleep 10; waited=$((waited + 10))

@@ -13,28 +13,17 @@
 # DIR/rlpd_vs_rfcl.svg (matplotlib from the project's .venv).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# shellcheck source=benches/lib.sh
+source benches/lib.sh
 
 seeds=1,2,3
 steps=150000
 demos=runs/demos/pointmaze.h5
 out=runs/rlpd_vs_rfcl
-while [[ $# -gt 0 ]]; do
-    case $1 in
-        --seeds) seeds=$2; shift 2 ;;
-        --steps) steps=$2; shift 2 ;;
-        --demos) demos=$2; shift 2 ;;
-        --out) out=$2; shift 2 ;;
-        -h|--help) sed -n '2,13p' "$0"; exit 0 ;;
-        *) echo "rlpd_vs_rfcl.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
-    esac
-done
+parse_flags "$0" seeds steps demos out -- "$@"
 
-rfcl=target/release/rfcl
-[[ -x $rfcl ]] || { echo "rlpd_vs_rfcl.sh: $rfcl is not built (cargo build --release)" >&2; exit 1; }
-if [[ ! -f $demos ]]; then
-    mkdir -p "$(dirname "$demos")"
-    "$rfcl" demos generate --env pointmaze -n 5 --out "$demos"
-fi
+need_rfcl "$0"
+demos_or_generate pointmaze "$demos"
 
 declare -A config=(
     [rfcl]=configs/pointmaze_test.yml

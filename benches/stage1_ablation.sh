@@ -16,23 +16,15 @@
 # budget), their mean and a 95 % t-interval, and wall time.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# shellcheck source=benches/lib.sh
+source benches/lib.sh
 
 env=pointmaze
 seeds=1,2,3
 rows=a,b,c,d
 demos=
 out=
-while [[ $# -gt 0 ]]; do
-    case $1 in
-        --env) env=$2; shift 2 ;;
-        --seeds) seeds=$2; shift 2 ;;
-        --rows) rows=$2; shift 2 ;;
-        --demos) demos=$2; shift 2 ;;
-        --out) out=$2; shift 2 ;;
-        -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
-        *) echo "stage1_ablation.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
-    esac
-done
+parse_flags "$0" env seeds rows demos out -- "$@"
 
 case $env in
     pointmaze) env_id=pointmaze; demos=${demos:-runs/demos/pointmaze.h5}; out=${out:-runs/stage1_ablation} ;;
@@ -40,12 +32,8 @@ case $env in
     *) echo "stage1_ablation.sh: --env is pointmaze or pick_cube, not $env" >&2; exit 2 ;;
 esac
 
-rfcl=target/release/rfcl
-[[ -x $rfcl ]] || { echo "stage1_ablation.sh: $rfcl is not built (cargo build --release)" >&2; exit 1; }
-if [[ ! -f $demos ]]; then
-    mkdir -p "$(dirname "$demos")"
-    "$rfcl" demos generate --env "$env_id" -n 5 --out "$demos"
-fi
+need_rfcl "$0"
+demos_or_generate "$env_id" "$demos"
 
 declare -A preset=(
     [a]=${env}_stage1_per_demo

@@ -1,0 +1,42 @@
+# What the bench scripts share; `source benches/lib.sh` from the repository root.
+
+# parse_flags SCRIPT NAME... -- ARGS...: each `--some-name VALUE` in ARGS sets the variable
+# some_name, which must be one of the NAMEs (the script sets their defaults before); -h/--help
+# prints the script's leading comment. Anything else stops the script with a line naming it.
+parse_flags() {
+    local script=$1 known=" " name
+    shift
+    while [[ $# -gt 0 && $1 != -- ]]; do known+="$1 "; shift; done
+    [[ $# -gt 0 ]] && shift
+    while [[ $# -gt 0 ]]; do
+        case $1 in
+            -h|--help) awk 'NR > 1 && !/^#/ {exit} NR > 1 {print}' "$script"; exit 0 ;;
+            --*)
+                name=${1#--}
+                name=${name//-/_}
+                if [[ $known != *" $name "* ]]; then
+                    echo "$(basename "$script"): unknown argument $1 (see --help)" >&2; exit 2
+                fi
+                if [[ $# -lt 2 ]]; then
+                    echo "$(basename "$script"): $1 needs a value (see --help)" >&2; exit 2
+                fi
+                printf -v "$name" '%s' "$2"
+                shift 2 ;;
+            *) echo "$(basename "$script"): unknown argument $1 (see --help)" >&2; exit 2 ;;
+        esac
+    done
+}
+
+# need_rfcl SCRIPT: the release build of rfcl, or a line saying how to build it.
+need_rfcl() {
+    rfcl=target/release/rfcl
+    [[ -x $rfcl ]] || { echo "$(basename "$1"): $rfcl is not built (cargo build --release)" >&2; exit 1; }
+}
+
+# demos_or_generate ENV FILE: generates 5 demos of ENV into FILE unless it exists.
+demos_or_generate() {
+    if [[ ! -f $2 ]]; then
+        mkdir -p "$(dirname "$2")"
+        "$rfcl" demos generate --env "$1" -n 5 --out "$2"
+    fi
+}
