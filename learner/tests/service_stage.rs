@@ -5,6 +5,7 @@
 //! updates again, keeping its optimiser states.
 mod service_support;
 
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use rfcl_learner::checkpoint;
@@ -12,16 +13,23 @@ use service_support::*;
 
 const W: u64 = 8;
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
-    let dir = tempfile::tempdir().unwrap();
-    let run_dir = dir.path().join("run");
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "");
+/// A run in `dir/run` (W warm-up steps, a budget no test reaches, `train_keys` added to its
+/// `train:` section) with its curriculum server and learner.
+fn start(dir: &Path, train_keys: &str) -> (PathBuf, Curriculum, Learner) {
+    let run_dir = dir.join("run");
+    let demos = write_demos(dir);
+    let config = write_config(dir, W, 100_000, "");
+    add_train_keys(&config, train_keys);
     let curriculum = Curriculum::start(&config, &demos, &run_dir);
     let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
     let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let mut learner = Learner::start(&args);
+    (run_dir, curriculum, Learner::start(&args))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run_dir, curriculum, mut learner) = start(dir.path(), "");
     let mut client = learner.client().await;
 
     // Stage 1: 40 env steps, 8 iterations.
@@ -91,14 +99,7 @@ async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
     let dir = tempfile::tempdir().unwrap();
-    let run_dir = dir.path().join("run");
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "");
-    add_train_keys(&config, "  stage_1_only: true\n");
-    let curriculum = Curriculum::start(&config, &demos, &run_dir);
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let mut learner = Learner::start(&args);
+    let (run_dir, curriculum, mut learner) = start(dir.path(), "  stage_1_only: true\n");
     let mut client = learner.client().await;
     push(&mut client, batches(0..20, 5, 0)).await.unwrap();
     wait_health(&mut client, Duration::from_secs(30), |h| h.env_steps == 20).await;
@@ -120,22 +121,7 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
             break;
         };
         let lease = lease.into_inner();
-        let _ = cur
-            .report(rfcl_proto::v1::EpisodeReport {
-                lease_id: lease.lease_id,
-                success_at_end: true,
-                success_once: true,
-                episode_return: 1.0,
-                length: 5,
-                policy_version: 0,
-                stage_epoch: lease.stage_epoch,
-                actor_id: 9,
-                actor_env_steps: 0,
-                policy_env_steps: 0,
-                actor_sim_restarts: 0,
-                reset_failure: String::new(),
-            })
-            .await;
+        let _ = cur.report(success_report(&lease)).await;
     }
     let status = learner.wait(Duration::from_secs(60));
     assert!(status.success(), "{status}");
@@ -153,14 +139,8 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_actor() {
     let dir = tempfile::tempdir().unwrap();
-    let run_dir = dir.path().join("run");
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, 100_000, "");
-    add_train_keys(&config, "  load_actor: false\n  load_critic: false\n");
-    let curriculum = Curriculum::start(&config, &demos, &run_dir);
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let mut learner = Learner::start(&args);
+    let (run_dir, curriculum, mut learner) =
+        start(dir.path(), "  load_actor: false\n  load_critic: false\n");
     let mut client = learner.client().await;
 
     push(&mut client, batches(0..40, 8, 0)).await.unwrap();
@@ -191,7 +171,7 @@ async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_
 }
 
 /// The step count of `optimiser`'s Adam in the run's last checkpoint.
-fn adam_step_count(run_dir: &std::path::Path, optimiser: &str) -> i64 {
+fn adam_step_count(run_dir: &Path, optimiser: &str) -> i64 {
     let ckpt = checkpoint::checkpoint_dir(run_dir);
     let manifest = checkpoint::read_manifest(&ckpt).unwrap().unwrap();
     let optimizers = tch::Tensor::read_safetensors(ckpt.join(&manifest.optimizers_file)).unwrap();

@@ -130,20 +130,7 @@ impl Curriculum {
                 return lease.stage_epoch;
             }
             let ack = client
-                .report(v1::EpisodeReport {
-                    lease_id: lease.lease_id,
-                    success_at_end: true,
-                    success_once: true,
-                    episode_return: 1.0,
-                    length: 5,
-                    policy_version: 0,
-                    stage_epoch: lease.stage_epoch,
-                    actor_id: 9,
-                    actor_env_steps: 0,
-                    policy_env_steps: 0,
-                    actor_sim_restarts: 0,
-                    reset_failure: String::new(),
-                })
+                .report(success_report(&lease))
                 .await
                 .unwrap()
                 .into_inner();
@@ -152,6 +139,24 @@ impl Curriculum {
             }
         }
         panic!("stage 1 did not end within 5000 successful episodes");
+    }
+}
+
+/// A successful 5-step episode of `lease` by actor 9, as a test reports it to the curriculum server.
+pub fn success_report(lease: &v1::ResetLease) -> v1::EpisodeReport {
+    v1::EpisodeReport {
+        lease_id: lease.lease_id,
+        success_at_end: true,
+        success_once: true,
+        episode_return: 1.0,
+        length: 5,
+        policy_version: 0,
+        stage_epoch: lease.stage_epoch,
+        actor_id: 9,
+        actor_env_steps: 0,
+        policy_env_steps: 0,
+        actor_sim_restarts: 0,
+        reset_failure: String::new(),
     }
 }
 
