@@ -114,17 +114,14 @@ async fn run_info_updates_on_schedule_and_whole_policy_versions() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sync_mode_never_lets_data_run_ahead_of_the_updates() {
     let dir = tempfile::tempdir().unwrap();
-    let Pair {
-        config: _,
-        curriculum: _curriculum,
-        learner,
-    } = start_pair(
+    let pair = start_pair(
         dir.path(),
         W,
         100_000,
         "  utd_mode: sync\n",
         &["--queue-batches", "2"],
     );
+    let learner = &pair.learner;
     let mut pusher = learner.client().await;
     let mut watcher = learner.client().await;
 
@@ -155,11 +152,8 @@ async fn sync_mode_never_lets_data_run_ahead_of_the_updates() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn malformed_batches_get_invalid_argument_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();
-    let Pair {
-        config: _,
-        curriculum: _curriculum,
-        learner,
-    } = start_pair(dir.path(), W, 100_000, "", &[]);
+    let pair = start_pair(dir.path(), W, 100_000, "", &[]);
+    let learner = &pair.learner;
     let mut client = learner.client().await;
 
     let good = batches(0..3, 3, 0).remove(0);
@@ -244,11 +238,8 @@ async fn calls_without_the_run_token_are_refused_counted_and_change_nothing() {
     use rfcl_proto::auth::{authenticated, Token};
     use rfcl_proto::v1::learner_client::LearnerClient;
     let dir = tempfile::tempdir().unwrap();
-    let Pair {
-        config: _,
-        curriculum: _curriculum,
-        learner,
-    } = start_pair(dir.path(), W, 100_000, "", &[]);
+    let pair = start_pair(dir.path(), W, 100_000, "", &[]);
+    let learner = &pair.learner;
     let channel = || async {
         tonic::transport::Channel::from_shared(learner.grpc.clone())
             .unwrap()
