@@ -7,6 +7,8 @@ import pytest
 from rfcl_sim import adapters
 from rfcl_sim.adapters import AdapterError
 
+from adapter_checks import assert_same_rollouts, envs_fixture, rollout
+
 warnings.filterwarnings("ignore", module="gymnasium")
 warnings.filterwarnings("ignore", module="gymnasium_robotics")
 
@@ -18,16 +20,7 @@ TASKS = {
 }
 
 
-@pytest.fixture(scope="module")
-def envs():
-    made = {task: adapters.make("adroit", task, seed=0) for task in TASKS}
-    yield made
-    for env in made.values():
-        env.close()
-
-
-def rollout(env, actions):
-    return [env.step(a) for a in actions]
+envs = envs_fixture("adroit", TASKS)
 
 
 @pytest.mark.parametrize("task", TASKS)
@@ -57,15 +50,11 @@ def test_state_round_trip_and_stepping_from_a_restored_state(envs, task):
     env.set_state(state)
     assert np.array_equal(env.get_state(), state)
     restored = rollout(env, actions)
-    for (o1, s1), (o2, s2) in zip(original, restored):
-        np.testing.assert_allclose(o2, o1, atol=1e-4)
-        assert s1 == s2
+    assert_same_rollouts(original, restored, atol=1e-4)
 
     env.reset(7, {})
     env.set_state(state)
-    again = rollout(env, actions)
-    for (o1, s1), (o2, s2) in zip(restored, again):
-        assert np.array_equal(o1, o2) and s1 == s2
+    assert_same_rollouts(restored, rollout(env, actions))
 
 
 @pytest.mark.parametrize("task", TASKS)

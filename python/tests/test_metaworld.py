@@ -7,22 +7,15 @@ import pytest
 from rfcl_sim import adapters
 from rfcl_sim.adapters import AdapterError
 
+from adapter_checks import assert_same_rollouts, envs_fixture, rollout
+
 warnings.filterwarnings("ignore", module="gymnasium")
 
 #: Three tasks with different objects: a puck, a stick with a container, a peg with a ring.
 TASKS = ["pick-place-v3", "stick-pull-v3", "assembly-v3"]
 
 
-@pytest.fixture(scope="module")
-def envs():
-    made = {task: adapters.make("metaworld", task, seed=0) for task in TASKS}
-    yield made
-    for env in made.values():
-        env.close()
-
-
-def rollout(env, actions):
-    return [env.step(a) for a in actions]
+envs = envs_fixture("metaworld", TASKS)
 
 
 def test_dims_horizon_and_layout_follow_spec(envs):
@@ -76,16 +69,12 @@ def test_state_round_trip_and_stepping_from_a_restored_state(envs, task):
     assert np.array_equal(env.get_state(), state)
     np.testing.assert_allclose(restored_obs, obs, atol=1e-6)
     restored = rollout(env, actions)
-    for (o1, s1), (o2, s2) in zip(original, restored):
-        np.testing.assert_allclose(o2, o1, atol=1e-4)
-        assert s1 == s2
+    assert_same_rollouts(original, restored, atol=1e-4)
 
     # A second restore is bit-identical to the first: set_state does not depend on history.
     env.reset(21, {})
     env.set_state(state)
-    again = rollout(env, actions)
-    for (o1, s1), (o2, s2) in zip(restored, again):
-        assert np.array_equal(o1, o2) and s1 == s2
+    assert_same_rollouts(restored, rollout(env, actions))
 
 
 def test_stepping_past_metaworld_path_limit_is_allowed():

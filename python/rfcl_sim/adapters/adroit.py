@@ -40,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
-from .base import AdapterError
-from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs,
-                     render_env_kwargs, start_rendering)
+from .base import AdapterError, MakeOptions
+from .fields import (FieldAdapter, check_env_kwargs, check_horizon, render_env_kwargs,
+                     start_rendering)
 
 #: env id -> (task short name, horizon H of spec 8.3, task fields after qpos and qvel).
 TASKS: dict[str, tuple[str, int, tuple[tuple[str, int], ...]]] = {
@@ -75,10 +75,9 @@ def canonical_id(env_id: str) -> str:
 
 def make(env_id: str, **kwargs: Any) -> "AdroitAdapter":
     """An Adroit adapter for ``env_id`` (see :func:`canonical_id`); default horizon 200, Pen
-    100 (spec 8.3). Keyword arguments: :data:`~rfcl_sim.adapters.fields.MAKE_KWARGS`.
+    100 (spec 8.3). Keyword arguments: those of :class:`~rfcl_sim.adapters.base.MakeOptions`.
     """
-    check_make_kwargs("adroit", env_id, kwargs)
-    return AdroitAdapter(env_id, **kwargs)
+    return AdroitAdapter(env_id, MakeOptions.of("adroit", env_id, kwargs))
 
 
 class AdroitAdapter(FieldAdapter):
@@ -86,33 +85,26 @@ class AdroitAdapter(FieldAdapter):
 
     suite = "adroit"
 
-    def __init__(
-        self,
-        env_id: str,
-        max_episode_steps: int | None = None,
-        control_mode: str | None = None,
-        env_kwargs: dict[str, Any] | None = None,
-        seed: int | None = None,
-        render_size: int | None = None,
-    ) -> None:
-        self.render_size = start_rendering("adroit", render_size)  # before MuJoCo is imported
+    def __init__(self, env_id: str, make_options: MakeOptions = MakeOptions()) -> None:
+        # First: with render_size it sets MUJOCO_GL, which MuJoCo reads when it is imported.
+        self.render_size = start_rendering("adroit", make_options.render_size)
         import gymnasium as gym
         import gymnasium_robotics
 
         self.env_id = canonical_id(env_id)
         self.task, default_horizon, task_fields = TASKS[self.env_id]
-        if control_mode not in (None, "default"):
+        if make_options.control_mode not in (None, "default"):
             raise AdapterError(
-                f"adroit: control_mode '{control_mode}' is not available for {self.env_id}; "
-                "Adroit has one controller (joint position targets): use null"
+                f"adroit: control_mode '{make_options.control_mode}' is not available for "
+                f"{self.env_id}; Adroit has one controller (joint position targets): use null"
             )
-        env_kwargs = check_env_kwargs("adroit", self.env_id, env_kwargs, ENV_KWARGS)
+        env_kwargs = check_env_kwargs("adroit", self.env_id, make_options.env_kwargs, ENV_KWARGS)
         env_kwargs = render_env_kwargs("adroit", self.env_id, env_kwargs, self.render_size)
-        self.horizon = check_horizon("adroit", max_episode_steps, default_horizon)
+        self.horizon = check_horizon("adroit", make_options.max_episode_steps, default_horizon)
         gym.register_envs(gymnasium_robotics)
         self._wrapped = gym.make(self.env_id, **env_kwargs)
         self._env = self._wrapped.unwrapped
-        self._rng = np.random.default_rng(seed)
+        self._rng = np.random.default_rng(make_options.seed)
         model = self._env.model
         self._layout = [("qpos", "field", int(model.nq)), ("qvel", "field", int(model.nv))]
         self._layout += [(name, "field", n) for name, n in task_fields]

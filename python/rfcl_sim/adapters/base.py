@@ -23,6 +23,7 @@ simulator is made exactly as if rendering did not exist, and ``render()`` raises
 from __future__ import annotations
 
 import abc
+import dataclasses
 import importlib
 from typing import Any, Callable
 
@@ -40,6 +41,43 @@ class AdapterError(Exception):
 
     The message names the argument and what was expected; the Rust side shows it verbatim.
     """
+
+
+@dataclasses.dataclass(frozen=True)
+class MakeOptions:
+    """The options of ``make`` that every suite takes (the run config's env section), as given: each
+    adapter checks the values itself, so that its messages name the suite. A suite's further
+    options (ManiSkill's ``sim_backend``, ``imports``, ...) are keyword arguments of its adapter.
+    """
+
+    #: The horizon H (default: the suite's, spec 8.3, or the env's registered one).
+    max_episode_steps: int | None = None
+    #: The controller (``None``: the suite's default; some suites have only that one).
+    control_mode: str | None = None
+    #: A dict of env constructor arguments, from those the suite allows.
+    env_kwargs: dict[str, Any] | None = None
+    #: Seeds the RNG that unseeded resets draw their seeds from.
+    seed: int | None = None
+    #: ``None`` (default: no rendering) or the pixels a side of the square frames of
+    #: :meth:`Adapter.render` (:func:`check_render_size`).
+    render_size: int | None = None
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        """The option names, in declaration order."""
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def of(cls, suite: str, env_id: str, kwargs: dict[str, Any]) -> MakeOptions:
+        """``make``'s keyword arguments ``kwargs`` as options; names outside :meth:`names` are
+        refused by name (rather than with the TypeError the constructor would raise)."""
+        unknown = sorted(set(kwargs) - set(cls.names()))
+        if unknown:
+            raise AdapterError(
+                f"{suite}: unknown argument(s) {unknown} for {env_id}; expected some of "
+                f"{list(cls.names())}"
+            )
+        return cls(**kwargs)
 
 
 class Adapter(abc.ABC):

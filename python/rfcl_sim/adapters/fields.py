@@ -1,7 +1,8 @@
 """Code the MetaWorld and Adroit adapters share.
 
-Both wrap one gymnasium MuJoCo env, take the same :func:`make` options and keep their state as
-named ``field`` entries (``qpos``, ``qvel``, then the suite's own fields). The checks live here
+Both wrap one gymnasium MuJoCo env, take the common ``make`` options and no others
+(:class:`~rfcl_sim.adapters.base.MakeOptions`) and keep their state as named ``field`` entries
+(``qpos``, ``qvel``, then the suite's own fields). The checks of those options' values live here
 once so that both suites accept and refuse the same input. Every message starts with the suite
 name ("adroit: ...", "metaworld: ..."), like the rest of those adapters' messages.
 """
@@ -17,15 +18,6 @@ import numpy as np
 
 from .base import Adapter, AdapterError, check_render_size
 
-#: Keyword arguments the suites' ``make`` accepts (the run config's env section):
-#:
-#: * ``max_episode_steps``: the horizon H (default: the suite's, spec 8.3);
-#: * ``control_mode``: ``None`` or ``"default"`` (each suite has one controller);
-#: * ``env_kwargs``: a dict of env constructor arguments, from the suite's ``ENV_KWARGS``;
-#: * ``seed``: seeds the RNG that unseeded resets draw their seeds from;
-#: * ``render_size``: ``None`` (default: no rendering) or the pixels a side of the square frames
-#:   of :meth:`~rfcl_sim.adapters.base.Adapter.render`.
-MAKE_KWARGS = ("max_episode_steps", "control_mode", "env_kwargs", "seed", "render_size")
 #: The env constructor arguments that ``render_size`` sets, so ``env_kwargs`` must not.
 RENDER_ENV_KWARGS = ("render_mode", "width", "height")
 #: The ``MUJOCO_GL`` an adapter made with ``render_size`` sets when it is unset: EGL renders
@@ -33,17 +25,6 @@ RENDER_ENV_KWARGS = ("render_mode", "width", "height")
 #: (libegl1, libegl-mesa0), on the CPU (llvmpipe). OSMesa needs libosmesa6, which set-ups rarely
 #: have, and GLFW needs a display.
 DEFAULT_MUJOCO_GL = "egl"
-
-
-def check_make_kwargs(suite: str, env_id: str, kwargs: dict[str, Any]) -> None:
-    """Refuses keyword arguments outside :data:`MAKE_KWARGS`, naming them (rather than the
-    TypeError the adapter's constructor would raise)."""
-    unknown = sorted(set(kwargs) - set(MAKE_KWARGS))
-    if unknown:
-        raise AdapterError(
-            f"{suite}: unknown argument(s) {unknown} for {env_id}; expected some of "
-            f"{list(MAKE_KWARGS)}"
-        )
 
 
 def check_env_kwargs(suite: str, env_id: str, env_kwargs: dict[str, Any] | None,

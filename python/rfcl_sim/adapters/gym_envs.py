@@ -48,50 +48,42 @@ from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError, check_render_size, entry_point, import_modules
-from .fields import check_horizon, check_make_kwargs, headless_gl, render_env_kwargs
+from .base import (Adapter, AdapterError, MakeOptions, check_render_size, entry_point,
+                   import_modules)
+from .fields import check_horizon, headless_gl, render_env_kwargs
 
 SUITE = "gymnasium"
-#: The options :func:`make` understands: those of the other suites, plus ``imports``.
-KWARGS = (
-    "max_episode_steps", "control_mode", "env_kwargs", "seed", "render_size", "imports", "success",
-)
+#: The options :func:`make` understands beyond the common ones (:class:`MakeOptions`).
+OWN_KWARGS = ("imports", "success")
+#: The options :func:`make` understands: those of the other suites, plus :data:`OWN_KWARGS`.
+KWARGS = (*MakeOptions.names(), *OWN_KWARGS)
 #: Largest difference between a state and the state read back after restoring it.
 RESTORE_TOLERANCE = 1e-5
 
 
 def make(env_id: str, **kwargs: Any) -> "GymnasiumAdapter":
-    own = ("imports", "success")
-    check_make_kwargs(SUITE, env_id, {k: v for k, v in kwargs.items() if k not in own})
-    return GymnasiumAdapter(env_id, **kwargs)
+    """A gymnasium adapter for ``env_id`` (module docs); keyword arguments: :data:`KWARGS`."""
+    own = {k: kwargs.pop(k) for k in OWN_KWARGS if k in kwargs}
+    return GymnasiumAdapter(env_id, MakeOptions.of(SUITE, env_id, kwargs), **own)
 
 
 class GymnasiumAdapter(Adapter):
     suite = SUITE
 
-    def __init__(
-        self,
-        env_id: str,
-        max_episode_steps: int | None = None,
-        control_mode: str | None = None,
-        env_kwargs: dict[str, Any] | None = None,
-        seed: int | None = None,
-        render_size: int | None = None,
-        imports: list[str] | None = None,
-        success: str | None = None,
-    ) -> None:
+    def __init__(self, env_id: str, make_options: MakeOptions = MakeOptions(),
+                 imports: list[str] | None = None, success: str | None = None) -> None:
         import gymnasium as gym
 
         self.env_id = env_id
-        if control_mode is not None:
+        if make_options.control_mode is not None:
             raise AdapterError(
                 f"{SUITE}: control_mode is not an option of {env_id}: set the controller through "
                 "env_kwargs, which go to the env's constructor"
             )
         import_modules(SUITE, imports)
         self._success = None if success is None else entry_point(SUITE, success)
-        self.render_size = check_render_size(SUITE, render_size)
-        kwargs = dict(env_kwargs or {})
+        self.render_size = check_render_size(SUITE, make_options.render_size)
+        kwargs = dict(make_options.env_kwargs or {})
         if self.render_size is not None:
             headless_gl()
             kwargs = render_env_kwargs(SUITE, env_id, kwargs, self.render_size)
@@ -115,12 +107,12 @@ class GymnasiumAdapter(Adapter):
         self._env = env.unwrapped
         spec = getattr(env, "spec", None)
         self.horizon = check_horizon(
-            SUITE, max_episode_steps, getattr(spec, "max_episode_steps", None) or 0)
+            SUITE, make_options.max_episode_steps, getattr(spec, "max_episode_steps", None) or 0)
         if self.horizon <= 0:
             raise AdapterError(
                 f"{SUITE}: {env_id} has no registered max_episode_steps: set env.max_episode_steps"
             )
-        self._rng = np.random.default_rng(seed)
+        self._rng = np.random.default_rng(make_options.seed)
         self._low, self._high = self._action_bounds(env.action_space)
         self.action_dim = int(self._low.shape[0])
         self._obs_space = env.observation_space

@@ -39,16 +39,19 @@ from typing import Any
 
 import numpy as np
 
-from .base import Adapter, AdapterError, check_render_size, import_modules
+from .base import Adapter, AdapterError, MakeOptions, check_render_size, import_modules
 
 SUITE = "maniskill3"
 DEFAULT_CONTROL_MODE = "pd_joint_delta_pos"
 DEFAULT_SIM_BACKEND = "physx_cpu"
 
-#: The keyword arguments :func:`make` understands (the run config's env section, spec 7.1).
+#: The keyword arguments :func:`make` understands (the run config's env section, spec 7.1): the
+#: common ones (:class:`MakeOptions`) and :data:`OWN_KWARGS`, in the order its errors list them.
 KWARGS = (
     "control_mode", "max_episode_steps", "env_kwargs", "seed", "sim_backend", "render_size", "imports",
 )
+#: The options of :data:`KWARGS` beyond the common ones, keyword arguments of the adapter itself.
+OWN_KWARGS = ("sim_backend", "imports")
 
 
 def fold_seed(seed: int) -> int:
@@ -70,24 +73,16 @@ def make(env_id: str, **kwargs: Any) -> "ManiSkillAdapter":
         raise AdapterError(
             f"maniskill3 adapter: unknown option(s) {unknown}; expected some of {list(KWARGS)}"
         )
-    return ManiSkillAdapter(env_id, **kwargs)
+    own = {k: kwargs.pop(k) for k in OWN_KWARGS if k in kwargs}
+    return ManiSkillAdapter(env_id, MakeOptions(**kwargs), **own)
 
 
 class ManiSkillAdapter(Adapter):
     suite = SUITE
 
-    def __init__(
-        self,
-        env_id: str,
-        control_mode: str | None = None,
-        max_episode_steps: int | None = None,
-        env_kwargs: dict[str, Any] | None = None,
-        seed: int | None = None,
-        sim_backend: str | None = None,
-        render_size: int | None = None,
-        imports: list[str] | None = None,
-    ) -> None:
-        self.render_size = check_render_size(SUITE, render_size)
+    def __init__(self, env_id: str, make_options: MakeOptions = MakeOptions(),
+                 sim_backend: str | None = None, imports: list[str] | None = None) -> None:
+        self.render_size = check_render_size(SUITE, make_options.render_size)
         import gymnasium as gym
         import mani_skill.envs  # noqa: F401  (registers the tasks)
         from mani_skill.utils.registration import REGISTERED_ENVS
@@ -100,7 +95,7 @@ class ManiSkillAdapter(Adapter):
                 "PegInsertionSide-v1, PlugCharger-v1; an env of your own package is registered "
                 "when the config lists its module in env.imports)"
             )
-        extra = dict(env_kwargs or {})
+        extra = dict(make_options.env_kwargs or {})
         fixed = {"obs_mode", "sim_backend", "num_envs", "reward_mode", "control_mode", "render_mode"}
         clash = sorted(fixed & set(extra))
         if clash:
@@ -121,9 +116,10 @@ class ManiSkillAdapter(Adapter):
             cameras.update(width=self.render_size, height=self.render_size)
             render = {"render_mode": "rgb_array", "human_render_camera_configs": cameras}
         self.env_id = env_id
-        self.control_mode = control_mode or DEFAULT_CONTROL_MODE
+        self.control_mode = make_options.control_mode or DEFAULT_CONTROL_MODE
         self.sim_backend = sim_backend or DEFAULT_SIM_BACKEND
-        self.horizon = int(max_episode_steps or REGISTERED_ENVS[env_id].max_episode_steps or 0)
+        horizon = make_options.max_episode_steps or REGISTERED_ENVS[env_id].max_episode_steps
+        self.horizon = int(horizon or 0)
         if self.horizon <= 0:
             raise AdapterError(f"{env_id} has no registered horizon: set max_episode_steps")
         self._gym_env = gym.make(
@@ -143,7 +139,7 @@ class ManiSkillAdapter(Adapter):
         self._high = np.asarray(space.high, dtype=np.float32).reshape(-1)
         self._identity_actions = bool(np.all(self._low == -1.0) and np.all(self._high == 1.0))
         # The first reset builds the scene (and seeds the env's RNG chain for unseeded resets).
-        obs = self.reset(seed, {})
+        obs = self.reset(make_options.seed, {})
         self.obs_dim = int(obs.shape[0])
         self._layout = self._layout_of(self._env.get_state_dict())
         self._render_camera: str | None = None

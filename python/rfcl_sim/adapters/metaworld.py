@@ -50,9 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from .base import AdapterError
-from .fields import (FieldAdapter, check_env_kwargs, check_horizon, check_make_kwargs,
-                     render_env_kwargs, start_rendering)
+from .base import AdapterError, MakeOptions
+from .fields import (FieldAdapter, check_env_kwargs, check_horizon, render_env_kwargs,
+                     start_rendering)
 
 #: Spec 8.3: MetaWorld tasks run for H = 200 steps (train and eval).
 DEFAULT_HORIZON = 200
@@ -81,10 +81,9 @@ def task_names() -> list[str]:
 
 def make(env_id: str, **kwargs: Any) -> "MetaWorldAdapter":
     """A MetaWorld adapter for task ``env_id`` (e.g. ``"pick-place-v3"``); default horizon 200
-    (spec 8.3). Keyword arguments: :data:`~rfcl_sim.adapters.fields.MAKE_KWARGS`.
+    (spec 8.3). Keyword arguments: those of :class:`~rfcl_sim.adapters.base.MakeOptions`.
     """
-    check_make_kwargs("metaworld", env_id, kwargs)
-    return MetaWorldAdapter(env_id, **kwargs)
+    return MetaWorldAdapter(env_id, MakeOptions.of("metaworld", env_id, kwargs))
 
 
 class MetaWorldAdapter(FieldAdapter):
@@ -92,16 +91,9 @@ class MetaWorldAdapter(FieldAdapter):
 
     suite = "metaworld"
 
-    def __init__(
-        self,
-        env_id: str,
-        max_episode_steps: int | None = None,
-        control_mode: str | None = None,
-        env_kwargs: dict[str, Any] | None = None,
-        seed: int | None = None,
-        render_size: int | None = None,
-    ) -> None:
-        self.render_size = start_rendering("metaworld", render_size)  # before MuJoCo is imported
+    def __init__(self, env_id: str, make_options: MakeOptions = MakeOptions()) -> None:
+        # First: with render_size it sets MUJOCO_GL, which MuJoCo reads when it is imported.
+        self.render_size = start_rendering("metaworld", make_options.render_size)
         import gymnasium as gym
         import metaworld  # noqa: F401  (registers the Meta-World/* env ids)
 
@@ -110,17 +102,17 @@ class MetaWorldAdapter(FieldAdapter):
                 f"metaworld: unknown task '{env_id}'; expected a MetaWorld v3 task name such as "
                 f"'pick-place-v3' (all: {', '.join(task_names())})"
             )
-        if control_mode not in CONTROL_MODES:
+        if make_options.control_mode not in CONTROL_MODES:
             raise AdapterError(
-                f"metaworld: control_mode '{control_mode}' is not available for {env_id}; "
-                "MetaWorld has one controller (end-effector deltas + gripper): use null"
+                f"metaworld: control_mode '{make_options.control_mode}' is not available for "
+                f"{env_id}; MetaWorld has one controller (end-effector deltas + gripper): use null"
             )
-        env_kwargs = check_env_kwargs("metaworld", env_id, env_kwargs, ENV_KWARGS)
+        env_kwargs = check_env_kwargs("metaworld", env_id, make_options.env_kwargs, ENV_KWARGS)
         env_kwargs = render_env_kwargs("metaworld", env_id, env_kwargs, self.render_size)
         if self.render_size is not None and not {"camera_name", "camera_id"} & set(env_kwargs):
             env_kwargs["camera_name"] = RENDER_CAMERA
         self.env_id = env_id
-        self.horizon = check_horizon("metaworld", max_episode_steps, DEFAULT_HORIZON)
+        self.horizon = check_horizon("metaworld", make_options.max_episode_steps, DEFAULT_HORIZON)
         # MT1's seed only fixes its 50 goals, which resets replace (module docs); a constant keeps
         # construction deterministic and within the 32-bit seeds MT1 takes.
         self._wrapped = gym.make("Meta-World/MT1", env_name=env_id, seed=0, **env_kwargs)
@@ -136,7 +128,7 @@ class MetaWorldAdapter(FieldAdapter):
             camera = mujoco.mj_id2name(env.model, mujoco.mjtObj.mjOBJ_CAMERA,
                                        env.mujoco_renderer.camera_id)
             self._rotate_frames = camera in UPSIDE_DOWN_CAMERAS
-        self._rng = np.random.default_rng(seed)
+        self._rng = np.random.default_rng(make_options.seed)
         self.obs_dim = int(env.sawyer_observation_space.shape[0])
         self.action_dim = int(env.action_space.shape[0])
         self._obs_low = env.sawyer_observation_space.low
