@@ -51,17 +51,10 @@ fi
 
 first_seed=${seeds%%,*}
 train() { # set seed extra...
-    local set=$1 seed=$2 dir="$out/$1-s$2"
+    local set=$1 seed=$2
     shift 2
-    if [[ -f $dir/summary.json ]]; then
-        echo "== $set seed $seed: done before ($dir/summary.json)" >&2
-        return
-    fi
-    echo "== $set seed $seed -> $dir" >&2
-    rm -rf "$dir"
-    "$rfcl" train --run-dir "$dir" configs/pointmaze_test.yml "train.dataset_path=$out/$set.h5" \
-        "seed=$seed" "train.steps=$steps" "$@" >"$dir.log" 2>&1 \
-        || echo "   the run failed: $dir.log" >&2
+    train_once "$set seed $seed" "$out/$set-s$seed" configs/pointmaze_test.yml \
+        "train.dataset_path=$out/$set.h5" "seed=$seed" "train.steps=$steps" "$@"
 }
 
 for seed in ${seeds//,/ }; do

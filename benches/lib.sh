@@ -40,3 +40,19 @@ demos_or_generate() {
         "$rfcl" demos generate --env "$1" -n 5 --out "$2"
     fi
 }
+
+# train_once WHAT DIR ARGS...: `rfcl train --run-dir DIR ARGS...`, its output in DIR.log, announced
+# on stderr as WHAT. A DIR with a summary.json is kept, so that rerunning a script resumes its
+# table; a failed run is reported and the script goes on to the next.
+train_once() {
+    local what=$1 dir=$2
+    shift 2
+    if [[ -f $dir/summary.json ]]; then
+        echo "== $what: done before ($dir/summary.json)" >&2
+        return 0
+    fi
+    echo "== $what -> $dir" >&2
+    rm -rf "$dir"
+    "$rfcl" train --run-dir "$dir" "$@" >"$dir.log" 2>&1 \
+        || echo "   the run failed: $dir.log" >&2
+}

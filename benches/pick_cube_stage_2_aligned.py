@@ -24,7 +24,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402 (after choosing the backend)
-import matplotlib.ticker  # noqa: E402
 from pick_cube_vs_reference import (  # noqa: E402 (benches/ is the script's directory)
     REFERENCE_260K_RANGE,
     REFERENCE_EVALS,
@@ -32,6 +31,7 @@ from pick_cube_vs_reference import (  # noqa: E402 (benches/ is the script's dir
     labelled_summary,
     wilson,
 )
+from plot_style import finish_success_plot  # noqa: E402
 
 WINDOW = 20_000
 # The reference's evals after its stage 1 ended, by their distance from that end.
@@ -162,15 +162,13 @@ def main():
                 highs.append(high - s / n)
         ax.errorbar(xs, ys, yerr=[lows, highs], fmt="s-", color=color, capsize=3,
                     label=f"{name} pooled (95 % interval)")
-    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"+{x / 1000:.0f}k"))
-    ax.set_xlabel("env steps after the run's own stage 1 ended")
-    ax.set_ylabel("eval success (20 episodes)")
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_title("PickCube-v1 stage 2, aligned at each run's stage-1 end")
-    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize="small")
-    fig.tight_layout()
-    fig.savefig(args.svg)
-    print(f"\ncurves: {args.svg}")
+    finish_success_plot(
+        fig, ax, args.svg, "PickCube-v1 stage 2, aligned at each run's stage-1 end",
+        ylabel="eval success (20 episodes)",
+        xlabel="env steps after the run's own stage 1 ended",
+        tick_prefix="+",
+        legend_fontsize="small",
+    )
 
 
 if __name__ == "__main__":

@@ -23,7 +23,7 @@ import yaml
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402 (after choosing the backend)
-import matplotlib.ticker  # noqa: E402
+from plot_style import finish_success_plot  # noqa: E402 (benches/ is the script's directory)
 
 # The reference run's figures (benches/RESULTS.md, "PickCube-v1 at the paper's settings"): eval
 # success at every 20,000 env steps where it was recorded (at 260k it was between 0.60 and 0.70),
@@ -232,15 +232,10 @@ def main():
         if run.get("stage_1_env_steps"):
             ax.axvline(run["stage_1_env_steps"], color=color, linestyle=":",
                        label=f"stage 1 ends ({label})")
-    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:.0f}k"))
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("eval success (20 episodes)")
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_title("PickCube-v1, 5 demos, full preset, 2-core CPU")
-    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5))
-    fig.tight_layout()
-    fig.savefig(args.svg)
-    print(f"\ncurves: {args.svg}")
+    finish_success_plot(
+        fig, ax, args.svg, "PickCube-v1, 5 demos, full preset, 2-core CPU",
+        ylabel="eval success (20 episodes)",
+    )
 
 
 if __name__ == "__main__":

@@ -32,17 +32,9 @@ declare -A config=(
 mkdir -p "$out"
 for seed in ${seeds//,/ }; do
     for method in rfcl rlpd; do
-        dir="$out/$method-s$seed"
-        if [[ -f $dir/summary.json ]]; then
-            echo "== $method seed $seed: done before ($dir/summary.json)" >&2
-            continue
-        fi
-        echo "== $method seed $seed -> $dir" >&2
-        rm -rf "$dir"
-        "$rfcl" train --run-dir "$dir" "${config[$method]}" "train.dataset_path=$demos" "seed=$seed" \
-            "train.steps=$steps" service.stop_at_eval_success=null \
-            >"$out/$method-s$seed.log" 2>&1 \
-            || echo "   the run failed: $out/$method-s$seed.log" >&2
+        train_once "$method seed $seed" "$out/$method-s$seed" "${config[$method]}" \
+            "train.dataset_path=$demos" "seed=$seed" "train.steps=$steps" \
+            service.stop_at_eval_success=null
     done
 done
 
@@ -92,7 +84,8 @@ for m in methods:
 import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-import matplotlib.ticker
+sys.path.insert(0, "benches")  # the script runs from the repository root
+from plot_style import finish_success_plot
 fig, ax = plt.subplots(figsize=(7, 3.6))
 for m, colour in zip(methods, ["tab:blue", "tab:orange"]):
     for s in seeds:
@@ -101,13 +94,6 @@ for m, colour in zip(methods, ["tab:blue", "tab:orange"]):
     xs = [x for x, v in zip(grid, means[m]) if v is not None]
     ax.plot(xs, [v for v in means[m] if v is not None], color=colour, linewidth=2.5,
             label=f"{m.upper()} (mean of {len(seeds)} seeds)")
-ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:.0f}k"))
-ax.set_xlabel("env steps")
-ax.set_ylabel("eval success at the end")
-ax.set_ylim(-0.02, 1.02)
-ax.set_title("PointMaze, small agent, 5 demos: RFCL vs RLPD")
-ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5))
-fig.tight_layout()
-fig.savefig(out / "rlpd_vs_rfcl.svg")
-print(f"\ncurves: {out / 'rlpd_vs_rfcl.svg'}")
+finish_success_plot(fig, ax, out / "rlpd_vs_rfcl.svg",
+                    "PointMaze, small agent, 5 demos: RFCL vs RLPD", ylabel="eval success at the end")
 PY

@@ -45,16 +45,8 @@ mkdir -p "$out"
 for row in ${rows//,/ }; do
     name=${preset[$row]:?unknown row $row (a, b, c or d)}
     for seed in ${seeds//,/ }; do
-        dir="$out/$row-s$seed"
-        if [[ -f $dir/summary.json ]]; then
-            echo "== $name seed $seed: done before ($dir/summary.json)" >&2
-            continue
-        fi
-        echo "== $name seed $seed -> $dir" >&2
-        rm -rf "$dir"
-        "$rfcl" train --run-dir "$dir" "configs/ablations/$name.yml" "train.dataset_path=$demos" "seed=$seed" \
-            >"$out/$row-s$seed.log" 2>&1 \
-            || echo "   the run failed: $out/$row-s$seed.log" >&2
+        train_once "$name seed $seed" "$out/$row-s$seed" "configs/ablations/$name.yml" \
+            "train.dataset_path=$demos" "seed=$seed"
     done
 done
 
