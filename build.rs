@@ -1,14 +1,7 @@
 //! The `rfcl` binary links libtorch (`rfcl eval` runs the policy network, through rfcl-actor and
-//! rfcl-learner): give it and this package's tests an rpath to libtorch's lib dir so they run
-//! without `LD_LIBRARY_PATH` (the venv's torch does not put its lib dir on the loader's path). torch-sys publishes the
-//! dir as `DEP_TCH_LIBTORCH_LIB` (its `links = "tch"` metadata) to packages that depend on it
-//! directly.
+//! rfcl-learner): it and this package's tests get an rpath to libtorch's lib dir.
+include!("build/libtorch_rpath.rs");
+
 fn main() {
-    println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
-    match std::env::var("DEP_TCH_LIBTORCH_LIB") {
-        Ok(dir) if !dir.is_empty() => println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}"),
-        _ => println!(
-            "cargo:warning=rfcl: torch-sys did not say where libtorch is; binaries will need LD_LIBRARY_PATH"
-        ),
-    }
+    libtorch_rpath("rfcl");
 }

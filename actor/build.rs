@@ -1,8 +1,5 @@
 //! The `actor` binary and this package's tests link libtorch (the policy network, through
-//! rfcl-policy): give them an rpath to libtorch's lib dir so they run without `LD_LIBRARY_PATH`
-//! (the libtorch of the venv's PyTorch is not on the loader's default path). torch-sys publishes
-//! the dir as `DEP_TCH_LIBTORCH_LIB` (its `links = "tch"` metadata) to packages that depend on it
-//! directly.
+//! rfcl-policy): they get an rpath to libtorch's lib dir.
 //!
 //! `rfcl-sim-worker` embeds the Python of `PYO3_PYTHON` (the venv's): it gets an rpath to that
 //! Python's own libpython (without it the loader takes Debian's libpython3.11, a different
@@ -10,14 +7,10 @@
 //! the worker to put on `sys.path`.
 use std::process::Command;
 
+include!("../build/libtorch_rpath.rs");
+
 fn main() {
-    println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
-    match std::env::var("DEP_TCH_LIBTORCH_LIB") {
-        Ok(dir) if !dir.is_empty() => println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}"),
-        _ => println!(
-            "cargo:warning=rfcl-actor: torch-sys did not say where libtorch is; binaries will need LD_LIBRARY_PATH"
-        ),
-    }
+    libtorch_rpath("rfcl-actor");
     python_paths();
 }
 

@@ -18,6 +18,15 @@ fn error_lines(out: &Output) -> Vec<String> {
         .collect()
 }
 
+/// `rfcl ARGS`, which must fail with exactly one `error:` line: that line.
+fn error_line(args: &[&str]) -> String {
+    let out = rfcl(args);
+    assert!(!out.status.success());
+    let lines = error_lines(&out);
+    assert_eq!(lines.len(), 1, "{lines:?}");
+    lines.into_iter().next().unwrap()
+}
+
 fn yaml_files(dir: &Path, out: &mut Vec<PathBuf>) {
     for entry in std::fs::read_dir(dir).unwrap() {
         let path = entry.unwrap().path();
@@ -90,26 +99,17 @@ fn a_misspelt_key_is_one_clear_error_line() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("typo.yml");
     std::fs::write(&file, "sac:\n  batch_sise: 512\n").unwrap();
-    let out = rfcl(&["config", "show", file.to_str().unwrap()]);
-    assert!(!out.status.success());
-    let lines = error_lines(&out);
-    assert_eq!(lines.len(), 1, "{lines:?}");
-    assert!(
-        lines[0].contains("typo.yml")
-            && lines[0].contains("sac.batch_sise")
-            && lines[0].contains("did you mean 'sac.batch_size'"),
-        "{}",
-        lines[0]
-    );
+    let line = error_line(&["config", "show", file.to_str().unwrap()]);
+    let expected = [
+        "typo.yml",
+        "sac.batch_sise",
+        "did you mean 'sac.batch_size'",
+    ];
+    rfcl_testkit::assert_contains_all(&line, &expected);
 
     let cfg = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/pointmaze.yml");
-    let out = rfcl(&["config", "show", cfg, "sac.tau=7"]);
-    assert!(!out.status.success());
-    let lines = error_lines(&out);
-    assert!(
-        lines.len() == 1 && lines[0].contains("sac.tau"),
-        "{lines:?}"
-    );
+    let line = error_line(&["config", "show", cfg, "sac.tau=7"]);
+    assert!(line.contains("sac.tau"), "{line}");
 }
 
 #[test]
@@ -117,14 +117,10 @@ fn a_corrupt_demo_file_is_one_clear_error_line() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("demos.h5");
     std::fs::write(&file, "this is not an HDF5 file\n").unwrap();
-    let out = rfcl(&["demos", "inspect", file.to_str().unwrap()]);
-    assert!(!out.status.success());
-    let lines = error_lines(&out);
-    assert_eq!(lines.len(), 1, "{lines:?}");
+    let line = error_line(&["demos", "inspect", file.to_str().unwrap()]);
     assert!(
-        lines[0].contains("demos.h5") && lines[0].to_lowercase().contains("hdf5"),
-        "{}",
-        lines[0]
+        line.contains("demos.h5") && line.to_lowercase().contains("hdf5"),
+        "{line}"
     );
 
     let out = rfcl(&[
@@ -142,17 +138,10 @@ fn a_corrupt_demo_file_is_one_clear_error_line() {
 fn a_demo_file_that_crashes_the_hdf5_library_is_one_clear_error_line() {
     let dir = tempfile::tempdir().unwrap();
     let file = rfcl_testkit::demos::hdf5_crash_reproducer(dir.path());
-    let out = rfcl(&["demos", "inspect", file.to_str().unwrap()]);
-    assert!(!out.status.success());
-    let lines = error_lines(&out);
-    assert_eq!(lines.len(), 1, "{lines:?}");
-    assert!(
-        lines[0].contains("damaged.h5") && lines[0].contains("crashed the HDF5 library"),
-        "{}",
-        lines[0]
-    );
+    let line = error_line(&["demos", "inspect", file.to_str().unwrap()]);
+    rfcl_testkit::assert_contains_all(&line, &["damaged.h5", "crashed the HDF5 library"]);
     // `rfcl train` refuses it before any service starts.
-    let out = rfcl(&[
+    let line = error_line(&[
         "train",
         Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("configs/pointmaze_test.yml")
@@ -162,14 +151,7 @@ fn a_demo_file_that_crashes_the_hdf5_library_is_one_clear_error_line() {
         "--run-dir",
         dir.path().join("run").to_str().unwrap(),
     ]);
-    assert!(!out.status.success());
-    let lines = error_lines(&out);
-    assert!(
-        lines.len() == 1
-            && lines[0].contains("train.dataset_path")
-            && lines[0].contains("crashed the HDF5 library"),
-        "{lines:?}"
-    );
+    rfcl_testkit::assert_contains_all(&line, &["train.dataset_path", "crashed the HDF5 library"]);
     assert!(!dir.path().join("run").join("processes.json").exists());
 }
 

@@ -58,22 +58,16 @@ fn write_bad_demos(good: &Path, bad: &Path) -> (u64, usize, [u64; 2]) {
 
 /// `rfcl demos select FILE --run RUN_DIR --out OUT [extra]`: (success, stdout + stderr).
 fn select(file: &Path, run_dir: &Path, out: &Path, extra: &[&str]) -> (bool, String) {
-    let output = Command::new(env!("CARGO_BIN_EXE_rfcl"))
-        .args(["demos", "select"])
-        .arg(file)
-        .arg("--run")
-        .arg(run_dir)
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap();
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    (output.status.success(), text)
+    rfcl_testkit::child::outcome(
+        Command::new(env!("CARGO_BIN_EXE_rfcl"))
+            .args(["demos", "select"])
+            .arg(file)
+            .arg("--run")
+            .arg(run_dir)
+            .arg("--out")
+            .arg(out)
+            .args(extra),
+    )
 }
 
 fn episode_ids(file: &Path) -> Vec<u64> {
@@ -109,16 +103,16 @@ fn a_demo_with_an_unreachable_part_is_the_only_one_flagged_and_select_drops_it()
     );
     assert!(text.contains("4 of 5 demos pass"), "{text}");
     let run_dir = dir.path().join("run");
-    let args: Vec<String> = [
-        test_config().display().to_string(),
-        format!("train.dataset_path={}", bad.display()),
-        "service.stop_at_eval_success=null".into(),
-        "service.stall_after_env_steps=20000".into(),
-        "--run-dir".into(),
-        run_dir.display().to_string(),
-    ]
-    .into();
-    let mut training = Training::start(&args, &run_dir, &dir.path().join("rfcl.stderr"));
+    let mut training = start_run(
+        &test_config(),
+        &bad,
+        &[
+            "service.stop_at_eval_success=null".into(),
+            "service.stall_after_env_steps=20000".into(),
+        ],
+        &run_dir,
+        &dir.path().join("rfcl.stderr"),
+    );
     let processes = training.processes(Duration::from_secs(120));
 
     // Until the bad demo is flagged and every other frontier has reached its first state.
@@ -208,18 +202,15 @@ fn a_demo_with_an_unreachable_part_is_the_only_one_flagged_and_select_drops_it()
     // One good demo: stage 1 ends, and so does a stage_1_only run (long reverse steps keep it
     // short).
     let best_dir = dir.path().join("best-run");
-    let args: Vec<String> = [
-        test_config().display().to_string(),
-        format!("train.dataset_path={}", best.display()),
-        "train.num_demos=1".into(),
-        "train.stage_1_only=true".into(),
-        "reverse.reverse_step_size=32".into(),
-        "service.stop_at_eval_success=null".into(),
-        "--run-dir".into(),
-        best_dir.display().to_string(),
+    let overrides = [
+        "train.num_demos=1",
+        "train.stage_1_only=true",
+        "reverse.reverse_step_size=32",
+        "service.stop_at_eval_success=null",
     ]
-    .into();
-    let mut training = Training::start(&args, &best_dir, &dir.path().join("best.stderr"));
+    .map(String::from);
+    let log = dir.path().join("best.stderr");
+    let mut training = start_run(&test_config(), &best, &overrides, &best_dir, &log);
     let status = training.wait(Duration::from_secs(600));
     assert!(status.success(), "{status:?}\n{}", training.stderr());
     let summary = training.summary();

@@ -16,16 +16,7 @@ use rfcl_core::demo::DemoSet;
 use rfcl_testkit::hdf5::fork_guard;
 
 fn rfcl(args: &[&str]) -> (bool, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_rfcl"))
-        .args(args)
-        .output()
-        .unwrap();
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    (out.status.success(), text)
+    rfcl_testkit::child::outcome(Command::new(env!("CARGO_BIN_EXE_rfcl")).args(args))
 }
 
 /// The seeds in `{a, b}` after `marker` on the line that holds it.
@@ -75,13 +66,12 @@ fn generate_and_replay(env: &str, preset: &str) {
         config.to_str().unwrap(),
     ]);
     assert!(ok, "{report}");
-    assert!(
-        report.contains("1 of 1 demos pass the replay check"),
-        "{report}"
-    );
-    assert!(
-        report.contains("states restore exactly, one-step errors: orientation"),
-        "{report}"
+    rfcl_testkit::assert_contains_all(
+        &report,
+        &[
+            "1 of 1 demos pass the replay check",
+            "states restore exactly, one-step errors: orientation",
+        ],
     );
 }
 

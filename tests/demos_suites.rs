@@ -7,12 +7,14 @@
 //!   D4RL file name) converts a small file written in D4RL's format (tests/adroit_d4rl.py);
 //! * unknown tasks, files of another task and files that are not HDF5 give errors that name them
 //!   and say what was expected.
-use std::path::{Path, PathBuf};
+mod train_support;
+
+use std::path::Path;
 use std::process::{Command, Output};
 
-use rfcl_actor::env::Env;
-use rfcl_actor::python::{PythonEnv, WorkerSpec};
+use rfcl_actor::python::WorkerSpec;
 use rfcl_core::demo::DemoSet;
+use rfcl_testkit::demos::write_d4rl_door;
 
 fn rfcl(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_rfcl"))
@@ -50,29 +52,6 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
-fn python() -> String {
-    std::env::var("RFCL_PYTHON")
-        .ok()
-        .or_else(|| option_env!("PYO3_PYTHON").map(str::to_owned))
-        .unwrap_or_else(|| "python3".into())
-}
-
-/// A D4RL-format Door file at `path`: `open` episodes that succeed, `closed` that do not.
-fn write_d4rl_door(path: &Path, open: u32, closed: u32, steps: u32) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/adroit_d4rl.py");
-    let out = Command::new(python())
-        .arg(&script)
-        .arg(path)
-        .args([open.to_string(), closed.to_string(), steps.to_string()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", stderr(&out));
-}
-
-fn worker() -> PathBuf {
-    rfcl_testkit::binaries::sim_worker()
-}
-
 #[test]
 fn metaworld_demos_are_generated_and_replay_through_the_bridge() {
     let dir = tempfile::tempdir().unwrap();
@@ -94,12 +73,14 @@ fn metaworld_demos_are_generated_and_replay_through_the_bridge() {
         "{log}"
     );
     let report = inspect(&file);
-    assert!(
-        report.contains("env: pick-place-v3")
-            && report.contains("max_episode_steps: 200")
-            && report.contains("episodes: 2 (2 successful)")
-            && report.contains("dims: obs 39, action 4, env_state 62"),
-        "{report}"
+    rfcl_testkit::assert_contains_all(
+        &report,
+        &[
+            "env: pick-place-v3",
+            "max_episode_steps: 200",
+            "episodes: 2 (2 successful)",
+            "dims: obs 39, action 4, env_state 62",
+        ],
     );
     let sidecar: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(file.with_extension("json")).unwrap())
@@ -118,31 +99,10 @@ fn metaworld_demos_are_generated_and_replay_through_the_bridge() {
         suite: "metaworld".into(),
         env_id: "pick-place-v3".into(),
         options: serde_json::json!({"max_episode_steps": 200}),
-        program: worker(),
+        program: train_support::sim::sim_worker(),
     };
-    let mut env = PythonEnv::start(spec, 0).unwrap();
-    assert_eq!(
-        env.state_layout(),
-        &set.state_layout,
-        "adapter and demo file agree"
-    );
-    for demo in &set.demos {
-        let mut replayed = Vec::with_capacity(demo.len());
-        for t in 0..demo.len() {
-            let obs = env
-                .reset_to_state(demo.reset.seed, &demo.reset.options, demo.state_row(t))
-                .unwrap();
-            let recorded = demo.obs_row(t);
-            assert!(
-                obs.iter().zip(recorded).all(|(a, b)| (a - b).abs() <= 1e-5),
-                "traj_{} obs {t}: {obs:?} vs {recorded:?}",
-                demo.episode_id
-            );
-            replayed.push(env.step(demo.action_row(t)).unwrap().success);
-        }
-        assert_eq!(replayed, demo.success, "traj_{}", demo.episode_id);
-        assert!(demo.succeeded && demo.success.last() == Some(&true));
-    }
+    let compared = set.demos[0].obs_row(0).len();
+    train_support::sim::replay_demos(spec, &set, compared);
 }
 
 #[test]
@@ -172,11 +132,13 @@ fn adroit_d4rl_file_converts_and_loads() {
         "{log}"
     );
     let report = inspect(&out);
-    assert!(
-        report.contains("env: AdroitHandDoorSparse-v1")
-            && report.contains("episodes: 2 (1 successful)")
-            && report.contains("dims: obs 39, action 28, env_state 63"),
-        "{report}"
+    rfcl_testkit::assert_contains_all(
+        &report,
+        &[
+            "env: AdroitHandDoorSparse-v1",
+            "episodes: 2 (1 successful)",
+            "dims: obs 39, action 28, env_state 63",
+        ],
     );
     // Suite and task from the file name (door-human-v1.hdf5, no .json sidecar); --episodes.
     let auto = dir.path().join("auto.h5");

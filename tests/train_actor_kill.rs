@@ -1,6 +1,6 @@
 //! A train actor SIGKILLed in the middle of a run: `rfcl train` respawns it and says so, the
 //! leases it held expire on the curriculum server and are counted, and the run still reaches its
-//! bar ([`BAR`], as in train_pointmaze.rs).
+//! bar (train_support's [`BAR`]).
 mod train_support;
 
 use std::time::Duration;
@@ -10,9 +10,6 @@ use train_support::*;
 /// Short enough that the dead actor's leases expire well before the run ends, long enough for any
 /// live episode (300 steps) on a loaded machine.
 const LEASE_TIMEOUT_S: u64 = 20;
-/// The mean success of the last 5 evaluations at which the run stops.
-const BAR: f64 = 0.9;
-
 #[test]
 fn a_killed_actor_is_respawned_and_its_leases_expire() {
     let dir = tempfile::tempdir().unwrap();
@@ -20,7 +17,7 @@ fn a_killed_actor_is_respawned_and_its_leases_expire() {
         dir.path(),
         &[
             format!("service.lease_timeout_s={LEASE_TIMEOUT_S}"),
-            format!("service.stop_at_eval_success={BAR}"),
+            stop_at_bar(),
         ],
         "rfcl.stderr",
     );

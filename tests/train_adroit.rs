@@ -18,22 +18,8 @@ fn rfcl() -> &'static str {
 /// 2 successful Door demos: a D4RL-format file written by tests/adroit_d4rl.py, converted by
 /// `rfcl demos convert` (suite and task from the file name, door-human-v1.hdf5).
 fn converted_door_demos(dir: &Path) -> PathBuf {
-    let python = std::env::var("RFCL_PYTHON")
-        .ok()
-        .or_else(|| option_env!("PYO3_PYTHON").map(str::to_owned))
-        .unwrap_or_else(|| "python3".into());
     let src = dir.join("door-human-v1.hdf5");
-    let written = Command::new(python)
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/adroit_d4rl.py"))
-        .arg(&src)
-        .args(["2", "0", "16"])
-        .output()
-        .unwrap();
-    assert!(
-        written.status.success(),
-        "{}",
-        String::from_utf8_lossy(&written.stderr)
-    );
+    rfcl_testkit::demos::write_d4rl_door(&src, 2, 0, 16);
     let out = dir.join("door.h5");
     let result = Command::new(rfcl())
         .args(["demos", "convert"])

@@ -204,14 +204,9 @@ fn an_ignored_sigint_stays_ignored_and_sigterm_stops_the_run() {
     let dir = tempfile::tempdir().unwrap();
     let demos = generate_demos(dir.path());
     let run_dir = dir.path().join("run");
-    let args: Vec<String> = vec![
-        test_config().display().to_string(),
-        format!("train.dataset_path={}", demos.display()),
-        "--run-dir".into(),
-        run_dir.display().to_string(),
-    ];
-    let mut training =
-        Training::start_ignoring_sigint(&args, &run_dir, &dir.path().join("rfcl.stderr"));
+    let args = train_args(&test_config(), &demos, &[], &run_dir);
+    let log = dir.path().join("rfcl.stderr");
+    let mut training = Training::start_ignoring_sigint(&args, &run_dir, &log);
     // An interrupt while the services start, and one once they all run: both ignored.
     std::thread::sleep(Duration::from_millis(300));
     signal(training.pid(), rustix::process::Signal::INT);

@@ -13,8 +13,7 @@ mod train_support;
 use std::path::Path;
 use std::process::Command;
 
-use rfcl_actor::env::Env;
-use rfcl_actor::python::{PythonEnv, WorkerSpec};
+use rfcl_actor::python::WorkerSpec;
 use rfcl_core::demo::DemoSet;
 use train_support::*;
 
@@ -32,12 +31,14 @@ fn generated_demos_load_and_replay_their_success_flags() {
     let dir = tempfile::tempdir().unwrap();
     let file = generate_env_demos("PickCube-v1", 2, &dir.path().join("pick_cube.h5"));
     let report = inspect(&file);
-    assert!(
-        report.contains("env: PickCube-v1  control_mode: pd_joint_delta_pos")
-            && report.contains("episodes: 2 (2 successful)")
-            && report.contains("dims: obs 42, action 8, env_state 70")
-            && report.contains("articulations/panda     (articulation, dof 9)"),
-        "{report}"
+    rfcl_testkit::assert_contains_all(
+        &report,
+        &[
+            "env: PickCube-v1  control_mode: pd_joint_delta_pos",
+            "episodes: 2 (2 successful)",
+            "dims: obs 42, action 8, env_state 70",
+            "articulations/panda     (articulation, dof 9)",
+        ],
     );
 
     // Load the whole set before any worker is forked (no HDF5 handle may leak into a child).
@@ -48,33 +49,8 @@ fn generated_demos_load_and_replay_their_success_flags() {
         options: serde_json::json!({"max_episode_steps": 50, "control_mode": "pd_joint_delta_pos"}),
         program: sim::sim_worker(),
     };
-    let mut env = PythonEnv::start(spec, 0).unwrap();
-    assert_eq!(
-        env.state_layout(),
-        &set.state_layout,
-        "adapter and demo file agree"
-    );
-    for demo in &set.demos {
-        let mut replayed = Vec::with_capacity(demo.len());
-        for t in 0..demo.len() {
-            let obs = env
-                .reset_to_state(demo.reset.seed, &demo.reset.options, demo.state_row(t))
-                .unwrap();
-            // The robot's qpos and qvel (the first 18 values) are read back exactly.
-            let recorded = &demo.obs_row(t)[..18];
-            assert!(
-                obs[..18]
-                    .iter()
-                    .zip(recorded)
-                    .all(|(a, b)| (a - b).abs() <= 1e-5),
-                "traj_{} obs {t}",
-                demo.episode_id
-            );
-            replayed.push(env.step(demo.action_row(t)).unwrap().success);
-        }
-        assert_eq!(replayed, demo.success, "traj_{}", demo.episode_id);
-        assert!(demo.succeeded && demo.success.last() == Some(&true));
-    }
+    // The robot's qpos and qvel (the first 18 values) are read back exactly.
+    sim::replay_demos(spec, &set, 18);
 
     // `--seed 1`: the planner's first episode (seed 0) is planned and dropped; what is left is the
     // same episode the seed-0 file holds for that seed.
@@ -99,34 +75,25 @@ fn generated_demos_load_and_replay_their_success_flags() {
 
     // `rfcl demos convert` on what a user brings: a motion-planning file under pd_joint_pos,
     // without observations.
-    let python = std::env::var("RFCL_PYTHON")
-        .ok()
-        .or_else(|| option_env!("PYO3_PYTHON").map(str::to_owned))
-        .unwrap_or_else(|| "python3".into());
     let record = dir.path().join("mp");
-    let planned = Command::new(&python)
-        .args([
-            "-m",
-            "mani_skill.examples.motionplanning.panda.run",
-            "-e",
-            "PickCube-v1",
-            "-n",
-            "1",
-            "--only-count-success",
-            "-b",
-            "physx_cpu",
-            "--traj-name",
-            "user",
-            "--record-dir",
-        ])
-        .arg(&record)
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        planned.status.success(),
-        "{}",
-        String::from_utf8_lossy(&planned.stderr)
+    succeed(
+        Command::new(rfcl_testkit::binaries::python())
+            .args([
+                "-m",
+                "mani_skill.examples.motionplanning.panda.run",
+                "-e",
+                "PickCube-v1",
+                "-n",
+                "1",
+                "--only-count-success",
+                "-b",
+                "physx_cpu",
+                "--traj-name",
+                "user",
+                "--record-dir",
+            ])
+            .arg(&record)
+            .current_dir(dir.path()),
     );
     let raw = record.join("PickCube-v1/motionplanning/user.h5");
     let converted = dir.path().join("converted.h5");
@@ -138,11 +105,13 @@ fn generated_demos_load_and_replay_their_success_flags() {
             .arg(&converted),
     );
     let report = inspect(&converted);
-    assert!(
-        report.contains("control_mode: pd_joint_delta_pos")
-            && report.contains("episodes: 1 (1 successful)")
-            && report.contains("dims: obs 42, action 8, env_state 70"),
-        "{report}"
+    rfcl_testkit::assert_contains_all(
+        &report,
+        &[
+            "control_mode: pd_joint_delta_pos",
+            "episodes: 1 (1 successful)",
+            "dims: obs 42, action 8, env_state 70",
+        ],
     );
     // Nothing was written beside the user's file.
     let beside: Vec<_> = std::fs::read_dir(raw.parent().unwrap())

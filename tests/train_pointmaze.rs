@@ -17,17 +17,10 @@ use rfcl_core::video::VideoMeta;
 
 use train_support::*;
 
-/// The mean success of the last 5 evaluations at which the run stops.
-const BAR: f64 = 0.9;
-
 #[test]
 fn pointmaze_test_config_trains_to_its_bar() {
     let dir = tempfile::tempdir().unwrap();
-    let mut training = start_test_run(
-        dir.path(),
-        &[format!("service.stop_at_eval_success={BAR}")],
-        "rfcl.stderr",
-    );
+    let mut training = start_test_run(dir.path(), &[stop_at_bar()], "rfcl.stderr");
     let run_dir = training.run_dir.clone();
 
     // While it runs: every child is up, and the learner and the curriculum server count the

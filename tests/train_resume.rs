@@ -9,20 +9,13 @@ use std::time::Duration;
 
 use train_support::*;
 
-/// The mean success of the last 5 evaluations at which the run stops.
-const BAR: f64 = 0.9;
-
 #[test]
 fn sigint_then_resume_runs_to_completion() {
     let dir = tempfile::tempdir().unwrap();
     // Not the default thread count on a 2-core machine (1), to see that `--resume` keeps it.
     let mut first = start_test_run(
         dir.path(),
-        &[
-            format!("service.stop_at_eval_success={BAR}"),
-            "--learner-threads".into(),
-            "2".into(),
-        ],
+        &[stop_at_bar(), "--learner-threads".into(), "2".into()],
         "first.stderr",
     );
     let run_dir = first.run_dir.clone();
@@ -69,7 +62,7 @@ fn sigint_then_resume_runs_to_completion() {
         &[
             "--resume".into(),
             run_dir.display().to_string(),
-            format!("service.stop_at_eval_success={BAR}"),
+            stop_at_bar(),
         ],
         &run_dir,
         &dir.path().join("resumed.stderr"),

@@ -1,16 +1,13 @@
 //! The curriculum server SIGKILLed and then the learner hung (SIGSTOP) in the middle of a run:
 //! `rfcl train` kills the silent learner at `service.hang_timeout_s`, restarts each on its port
 //! from its last snapshot or checkpoint, says so with what was rolled back, the actors and the
-//! other service reconnect by themselves, and the run still reaches its bar ([`BAR`], as in
-//! train_pointmaze.rs). The summary lists both restarts with their causes.
+//! other service reconnect by themselves, and the run still reaches its bar (train_support's
+//! [`BAR`]). The summary lists both restarts with their causes.
 mod train_support;
 
 use std::time::Duration;
 
 use train_support::*;
-
-/// The mean success of the last 5 evaluations at which the run stops.
-const BAR: f64 = 0.9;
 
 /// The processes.json of the run once `name` has a pid other than `old`.
 fn replaced(run_dir: &std::path::Path, name: &str, old: u64) -> Option<(u64, serde_json::Value)> {
@@ -27,7 +24,7 @@ fn killed_services_are_restarted_and_the_run_reaches_its_bar() {
     let mut training = start_test_run(
         dir.path(),
         &[
-            format!("service.stop_at_eval_success={BAR}"),
+            stop_at_bar(),
             // Snapshots and checkpoints often enough that each kill rolls back little.
             "service.snapshot_every_s=2".into(),
             "sac.save_every_s=10".into(),

@@ -27,19 +27,20 @@ fn example(file: &str) -> PathBuf {
 
 /// `rfcl ARGS` with the tutorial's PYTHONPATH: (success, stdout + stderr).
 fn rfcl_cmd(args: &[&str]) -> (bool, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_rfcl"))
-        .args(args)
-        .env("PYTHONPATH", example(""))
-        .output()
-        .unwrap();
-    (
-        out.status.success(),
-        format!(
-            "{}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        ),
+    rfcl_testkit::child::outcome(
+        Command::new(env!("CARGO_BIN_EXE_rfcl"))
+            .args(args)
+            .env("PYTHONPATH", example("")),
     )
+}
+
+/// The tutorial's config `NAME.yml`, and demos recorded with its `NAME:scripted_policy` into
+/// `dir/NAME.h5`.
+fn recorded_example(dir: &Path, name: &str) -> (PathBuf, PathBuf) {
+    let config = example(&format!("{name}.yml"));
+    let demos = dir.join(format!("{name}.h5"));
+    record(&config, &format!("{name}:scripted_policy"), &demos);
+    (config, demos)
 }
 
 fn record(config: &Path, policy: &str, out: &Path) {
@@ -80,13 +81,14 @@ fn train(
 ) -> (PathBuf, serde_json::Value) {
     std::env::set_var("PYTHONPATH", example(""));
     let run_dir = dir.join("run");
-    let mut args = vec![
-        config.display().to_string(),
-        format!("train.dataset_path={}", demos.display()),
-    ];
-    args.extend(overrides.iter().map(|o| o.to_string()));
-    args.extend(["--run-dir".into(), run_dir.display().to_string()]);
-    let mut training = Training::start(&args, &run_dir, &dir.join("rfcl.stderr"));
+    let overrides: Vec<String> = overrides.iter().map(|o| o.to_string()).collect();
+    let mut training = start_run(
+        config,
+        demos,
+        &overrides,
+        &run_dir,
+        &dir.join("rfcl.stderr"),
+    );
     let status = training.wait(limit);
     assert!(status.success(), "{}", training.stderr());
     let summary = training.summary();
@@ -115,9 +117,7 @@ fn python(script: &str) -> String {
 fn the_tutorial_trains_a_task_rfcl_does_not_know() {
     require_services();
     let dir = tempfile::tempdir().unwrap();
-    let config = example("wall_reach.yml");
-    let demos = dir.path().join("wall_reach.h5");
-    record(&config, "wall_reach:scripted_policy", &demos);
+    let (config, demos) = recorded_example(dir.path(), "wall_reach");
 
     let (run_dir, summary) = train(dir.path(), &config, &demos, &[], Duration::from_secs(900));
     assert_reached(&summary, 0.9);
@@ -160,9 +160,7 @@ fn the_tutorial_trains_a_task_rfcl_does_not_know() {
 fn a_stock_mujoco_env_trains_with_no_user_code() {
     require_services();
     let dir = tempfile::tempdir().unwrap();
-    let config = example("fetch_reach.yml");
-    let demos = dir.path().join("fetch_reach.h5");
-    record(&config, "fetch_reach:scripted_policy", &demos);
+    let (config, demos) = recorded_example(dir.path(), "fetch_reach");
     let (_, summary) = train(
         dir.path(),
         &config,
@@ -195,9 +193,7 @@ fn a_stock_mujoco_env_trains_with_no_user_code() {
 fn a_demo_state_the_env_refuses_is_counted_against_its_demo_and_the_run_goes_on() {
     require_services();
     let dir = tempfile::tempdir().unwrap();
-    let config = example("wall_reach.yml");
-    let demos = dir.path().join("wall_reach.h5");
-    record(&config, "wall_reach:scripted_policy", &demos);
+    let (config, demos) = recorded_example(dir.path(), "wall_reach");
     // One demo's last 8 states put the point outside the arena: finite numbers, so the file
     // loads, but WallReach's rfcl_set_state refuses them, and stage 1 starts there.
     let script = format!(

@@ -10,6 +10,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rfcl_actor::env::{Env, EnvError};
 use rfcl_actor::python::{PythonEnv, PythonEnvError, WorkerSpec};
+use rfcl_testkit::child::{signal, Signal};
 use serde_json::json;
 
 fn spec(env_id: &str, options: serde_json::Value) -> WorkerSpec {
@@ -99,11 +100,7 @@ fn a_killed_worker_is_restarted_and_the_episode_goes_on() {
         env.step(a).unwrap();
     }
     let pid = env.worker_pid().unwrap();
-    let killed = std::process::Command::new("kill")
-        .args(["-KILL", &pid.to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    signal(pid, Signal::KILL);
     // The next step finds the worker dead, restarts it, replays reset + 6 steps, and steps.
     for (i, a) in acts.iter().enumerate().skip(6) {
         let out = env.step(a).unwrap();
@@ -128,11 +125,7 @@ fn a_hung_worker_is_killed_at_the_deadline_and_replaced() {
     env.step(&acts[0]).unwrap();
     let pid = env.worker_pid().unwrap();
     // A stopped process never answers: it stands for a simulator stuck in a loop.
-    let stopped = std::process::Command::new("kill")
-        .args(["-STOP", &pid.to_string()])
-        .status()
-        .unwrap();
-    assert!(stopped.success());
+    signal(pid, Signal::STOP);
     for a in &acts[1..] {
         assert_eq!(env.step(a).unwrap().obs.len(), 42);
     }

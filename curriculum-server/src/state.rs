@@ -541,12 +541,9 @@ mod tests {
     fn sim_worker_restarts_add_up_over_reports_and_respawns() {
         let (cfg, demos, mut state) = one_demo();
         let mut report = |actor_id: u32, sim_restarts: u64| {
-            let request = AcquireRequest {
-                actor_id,
-                env_index: 0,
-                eval: false,
-            };
-            let lease = state.acquire(request, &cfg, &demos, 1.0).unwrap();
+            let lease = state
+                .acquire(train_request(actor_id), &cfg, &demos, 1.0)
+                .unwrap();
             let report = EpisodeReport {
                 success_at_end: false,
                 success_once: false,
@@ -599,6 +596,15 @@ mod tests {
         (cfg, demos, state)
     }
 
+    /// A train actor's request for its env 0.
+    fn train_request(actor_id: u32) -> AcquireRequest {
+        AcquireRequest {
+            actor_id,
+            env_index: 0,
+            eval: false,
+        }
+    }
+
     fn report_of(lease: &ResetLease, actor_id: u32, length: u32) -> EpisodeReport {
         EpisodeReport {
             lease_id: lease.lease_id,
@@ -619,11 +625,7 @@ mod tests {
     #[test]
     fn a_failed_reset_is_counted_against_its_demo_and_changes_no_outcome() {
         let (cfg, demos, mut state) = one_demo();
-        let train = AcquireRequest {
-            actor_id: 1,
-            env_index: 0,
-            eval: false,
-        };
+        let train = train_request(1);
         let failed_report = |lease: &ResetLease, reason: &str| EpisodeReport {
             success_at_end: false,
             success_once: false,
@@ -669,11 +671,7 @@ mod tests {
     #[test]
     fn reports_longer_than_their_lease_or_from_another_actor_change_nothing() {
         let (cfg, demos, mut state) = one_demo();
-        let train = AcquireRequest {
-            actor_id: 1,
-            env_index: 0,
-            eval: false,
-        };
+        let train = train_request(1);
         let lease = state.acquire(train, &cfg, &demos, 1.0).unwrap();
         let limit = lease.time_limit;
         assert!(limit < cfg.env.max_episode_steps, "stage 1's dynamic limit");
@@ -750,17 +748,14 @@ mod tests {
     #[test]
     fn actors_silent_for_too_long_are_forgotten_and_counted() {
         let (cfg, demos, mut state) = one_demo();
-        let req = |actor_id| AcquireRequest {
-            actor_id,
-            env_index: 0,
-            eval: false,
-        };
         // Actor 1 reports at t = 10 with 3 simulator restarts; actor 2 calls at t = 500; actor 3
         // takes a lease at t = 10 and never reports it.
-        let lease = state.acquire(req(1), &cfg, &demos, 10.0).unwrap();
+        let lease = state.acquire(train_request(1), &cfg, &demos, 10.0).unwrap();
         state.report(&report_of(&lease, 1, 1), &cfg, 10.0).unwrap();
-        state.acquire(req(3), &cfg, &demos, 10.0).unwrap();
-        let lease = state.acquire(req(2), &cfg, &demos, 500.0).unwrap();
+        state.acquire(train_request(3), &cfg, &demos, 10.0).unwrap();
+        let lease = state
+            .acquire(train_request(2), &cfg, &demos, 500.0)
+            .unwrap();
         state.report(&report_of(&lease, 2, 1), &cfg, 500.0).unwrap();
         assert_eq!(state.stats.sim_worker_restarts(), 6);
 
@@ -784,7 +779,7 @@ mod tests {
         // 10,000 actor ids passing through leave a table of the recent ones only.
         for id in 100..10_100u32 {
             let now = 1000.0 + f64::from(id);
-            let lease = state.acquire(req(id), &cfg, &demos, now).unwrap();
+            let lease = state.acquire(train_request(id), &cfg, &demos, now).unwrap();
             state.report(&report_of(&lease, id, 1), &cfg, now).unwrap();
             state.forget_idle_actors(now, 600.0);
         }

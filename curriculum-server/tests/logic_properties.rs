@@ -11,24 +11,19 @@ use rfcl_curriculum::rank::Transform;
 use rfcl_curriculum::{Assignment, Curriculum, DemoMeta, EpisodeOutcome, ReportEffect, Reverse};
 
 fn transform_kind() -> impl Strategy<Value = ScoreTransform> {
-    prop_oneof![
-        Just(ScoreTransform::Rankmin),
-        Just(ScoreTransform::Rank),
-        Just(ScoreTransform::Constant),
-        Just(ScoreTransform::Identity),
-        Just(ScoreTransform::Power),
-        Just(ScoreTransform::Softmax),
-    ]
+    use ScoreTransform::*;
+    proptest::sample::select(vec![Rankmin, Rank, Constant, Identity, Power, Softmax])
 }
 
 fn sampler() -> impl Strategy<Value = StartStepSampler> {
-    prop_oneof![
-        Just(StartStepSampler::Geometric),
-        Just(StartStepSampler::FixedPoint),
-        Just(StartStepSampler::Uniform),
-        Just(StartStepSampler::UniformSpike),
-        Just(StartStepSampler::UniformStep),
-    ]
+    use StartStepSampler::*;
+    proptest::sample::select(vec![
+        Geometric,
+        FixedPoint,
+        Uniform,
+        UniformSpike,
+        UniformStep,
+    ])
 }
 
 /// Any value, special ones included, and many ties.

@@ -73,6 +73,19 @@ async fn applied(
         .applied
 }
 
+/// A WatchStage stream and its first event: (stage, stage epoch, finished).
+async fn watch_stage(
+    client: &mut v1::curriculum_client::CurriculumClient<rfcl_proto::auth::AuthChannel>,
+) -> (tonic::Streaming<v1::StageEvent>, (u32, u64, bool)) {
+    let mut stages = client
+        .watch_stage(v1::WatchStageRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    let first = stages.message().await.unwrap().unwrap();
+    (stages, (first.stage, first.stage_epoch, first.finished))
+}
+
 /// The run's state as other processes read it (GetState).
 async fn state_view(
     client: &mut v1::curriculum_client::CurriculumClient<rfcl_proto::auth::AuthChannel>,
@@ -545,16 +558,8 @@ async fn the_run_finishes_when_the_last_five_evals_reach_the_bar() {
         "sac.eval_steps=100",
     ]);
     let mut client = server.client().await;
-    let mut stages = client
-        .watch_stage(v1::WatchStageRequest::default())
-        .await
-        .unwrap()
-        .into_inner();
-    let first = stages.message().await.unwrap().unwrap();
-    assert_eq!(
-        (first.stage, first.stage_epoch, first.finished),
-        (1, 0, false)
-    );
+    let (mut stages, first) = watch_stage(&mut client).await;
+    assert_eq!(first, (1, 0, false));
 
     let eval_req = v1::AcquireRequest {
         actor_id: 9,
@@ -611,12 +616,8 @@ async fn sigterm_with_open_stage_watches_exits_promptly_and_writes_the_snapshot(
     let mut watches = Vec::new();
     for _ in 0..2 {
         let mut c = server.client().await;
-        let mut stream = c
-            .watch_stage(v1::WatchStageRequest::default())
-            .await
-            .unwrap()
-            .into_inner();
-        assert_eq!(stream.message().await.unwrap().unwrap().stage, 1);
+        let (stream, (stage, _, _)) = watch_stage(&mut c).await;
+        assert_eq!(stage, 1);
         watches.push((c, stream));
     }
     let lease = client.acquire(acquire_req(0)).await.unwrap().into_inner();
@@ -830,16 +831,8 @@ async fn a_stage_1_only_run_resumed_without_it_goes_on_into_stage_2() {
     // Resumed under the config without stage_1_only: stage 2 in a new epoch, stage 1's end kept.
     let restarted = ServerProcess::start(&files.args("--resume", &[]));
     let mut client = restarted.client().await;
-    let mut stages = client
-        .watch_stage(v1::WatchStageRequest::default())
-        .await
-        .unwrap()
-        .into_inner();
-    let first = stages.message().await.unwrap().unwrap();
-    assert_eq!(
-        (first.stage, first.stage_epoch, first.finished),
-        (2, 2, false)
-    );
+    let (_stages, first) = watch_stage(&mut client).await;
+    assert_eq!(first, (2, 2, false));
     let view = state_view(&mut client).await;
     assert_eq!(view.stage_1_env_steps, Some(stage_1_end));
     assert_eq!(view.env_steps, ended.env_steps);

@@ -73,23 +73,16 @@ pub fn validate_records(
         field,
         problem,
     };
-    if header.obs_dim as usize != layout.obs_dim {
-        return Err(err(
-            "obs_dim",
-            format!(
-                "{} differs from the run's obs_dim {}",
-                header.obs_dim, layout.obs_dim
-            ),
-        ));
-    }
-    if header.action_dim as usize != layout.action_dim {
-        return Err(err(
-            "action_dim",
-            format!(
-                "{} differs from the run's action_dim {}",
-                header.action_dim, layout.action_dim
-            ),
-        ));
+    for (field, got, run) in [
+        ("obs_dim", header.obs_dim, layout.obs_dim),
+        ("action_dim", header.action_dim, layout.action_dim),
+    ] {
+        if got as usize != run {
+            return Err(err(
+                field,
+                format!("{got} differs from the run's {field} {run}"),
+            ));
+        }
     }
     let count = header.count as usize;
     let record_bytes = layout.record_bytes();

@@ -16,7 +16,6 @@ use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
 use prometheus_client::metrics::counter::ConstCounter;
 use prometheus_client::metrics::gauge::ConstGauge;
-use prometheus_client::metrics::MetricType;
 use prometheus_client::registry::Registry;
 
 use crate::metrics::Timings;
@@ -150,54 +149,30 @@ pub fn resident_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
-fn counter<N: prometheus_client::encoding::EncodeCounterValue>(
+/// One metric without labels; its type is the metric's.
+fn metric(
     e: &mut DescriptorEncoder,
     name: &str,
     help: &str,
-    value: N,
+    metric: impl EncodeMetric,
 ) -> std::fmt::Result {
-    let c = ConstCounter::new(value);
-    c.encode(e.encode_descriptor(name, help, None, c.metric_type())?)
+    metric.encode(e.encode_descriptor(name, help, None, metric.metric_type())?)
 }
 
-fn gauge<N: prometheus_client::encoding::EncodeGaugeValue>(
-    e: &mut DescriptorEncoder,
-    name: &str,
-    help: &str,
-    value: N,
-) -> std::fmt::Result {
-    let g = ConstGauge::new(value);
-    g.encode(e.encode_descriptor(name, help, None, g.metric_type())?)
-}
-
-/// A gauge family with one label.
-fn gauges<N: prometheus_client::encoding::EncodeGaugeValue + Copy>(
+/// A family of `metric(value)` with one label; its type is the metric's.
+fn family<N: Copy + Default, M: EncodeMetric>(
     e: &mut DescriptorEncoder,
     name: &str,
     help: &str,
     label: &str,
     values: &[(&str, N)],
+    metric: impl Fn(N) -> M,
 ) -> std::fmt::Result {
-    let mut m = e.encode_descriptor(name, help, None, MetricType::Gauge)?;
+    let kind = metric(N::default()).metric_type();
+    let mut m = e.encode_descriptor(name, help, None, kind)?;
     for (value_of_label, v) in values {
         let labels = [(label, *value_of_label)];
-        ConstGauge::new(*v).encode(m.encode_family(&labels)?)?;
-    }
-    Ok(())
-}
-
-/// A counter family with one label.
-fn counters<N: prometheus_client::encoding::EncodeCounterValue + Copy>(
-    e: &mut DescriptorEncoder,
-    name: &str,
-    help: &str,
-    label: &str,
-    values: &[(&str, N)],
-) -> std::fmt::Result {
-    let mut m = e.encode_descriptor(name, help, None, MetricType::Counter)?;
-    for (value_of_label, v) in values {
-        let labels = [(label, *value_of_label)];
-        ConstCounter::new(*v).encode(m.encode_family(&labels)?)?;
+        metric(*v).encode(m.encode_family(&labels)?)?;
     }
     Ok(())
 }
@@ -206,95 +181,112 @@ impl Collector for LearnerMetrics {
     fn encode(&self, mut e: DescriptorEncoder) -> std::fmt::Result {
         let s = self.snapshot();
         let e = &mut e;
-        counter(
+        metric(
             e,
             "env_steps",
             "Env steps (transitions) stored",
-            s.env_steps,
+            ConstCounter::new(s.env_steps),
         )?;
-        counter(e, "critic_updates", "Critic updates", s.critic_updates)?;
-        counter(
+        metric(
+            e,
+            "critic_updates",
+            "Critic updates",
+            ConstCounter::new(s.critic_updates),
+        )?;
+        metric(
             e,
             "actor_updates",
             "Actor (and temperature) updates",
-            s.actor_updates,
+            ConstCounter::new(s.actor_updates),
         )?;
-        counter(
+        metric(
             e,
             "iterations",
             "Training iterations (docs/ALGORITHM.md 5.2)",
-            s.iterations,
+            ConstCounter::new(s.iterations),
         )?;
-        gauge(
+        metric(
             e,
             "updates_per_second",
             "Critic updates per second over the last progress window",
-            s.updates_per_s,
+            ConstGauge::new(s.updates_per_s),
         )?;
-        gauge(
+        metric(
             e,
             "env_steps_per_second",
             "Env steps stored per second over the last progress window",
-            s.env_steps_per_s,
+            ConstGauge::new(s.env_steps_per_s),
         )?;
-        gauge(e, "utd", "Achieved critic updates per env step", s.utd)?;
-        gauge(
+        metric(
+            e,
+            "utd",
+            "Achieved critic updates per env step",
+            ConstGauge::new(s.utd),
+        )?;
+        metric(
             e,
             "utd_target",
             "Configured critic updates per env step (G/K)",
-            s.utd_target,
+            ConstGauge::new(s.utd_target),
         )?;
         let buffers: Vec<(&str, BufferStats)> = std::iter::once(("online", s.online))
             .chain(s.offline.map(|b| ("offline", b)))
             .collect();
-        let pick = |f: fn(&BufferStats) -> i64| -> Vec<(&str, i64)> {
-            buffers.iter().map(|(n, b)| (*n, f(b))).collect()
-        };
-        gauges(
-            e,
-            "replay_transitions",
-            "Transitions stored per replay buffer",
-            "buffer",
-            &pick(|b| b.len as i64),
-        )?;
-        gauges(
-            e,
-            "replay_capacity",
-            "Capacity in transitions per replay buffer",
-            "buffer",
-            &pick(|b| b.capacity as i64),
-        )?;
-        gauges(
-            e,
-            "replay_bytes",
-            "Bytes allocated per replay buffer",
-            "buffer",
-            &pick(|b| b.bytes as i64),
-        )?;
+        type Stat = fn(&BufferStats) -> i64;
+        let replay: [(&str, &str, Stat); 3] = [
+            (
+                "replay_transitions",
+                "Transitions stored per replay buffer",
+                |b| b.len as i64,
+            ),
+            (
+                "replay_capacity",
+                "Capacity in transitions per replay buffer",
+                |b| b.capacity as i64,
+            ),
+            ("replay_bytes", "Bytes allocated per replay buffer", |b| {
+                b.bytes as i64
+            }),
+        ];
+        for (name, help, stat) in replay {
+            let values: Vec<(&str, i64)> = buffers.iter().map(|(n, b)| (*n, stat(b))).collect();
+            family(e, name, help, "buffer", &values, ConstGauge::new)?;
+        }
         let drops: Vec<(&str, u64)> = self.drops().into_iter().collect();
-        counters(
+        family(
             e,
             "dropped_records",
             "Transition records dropped, by reason",
             "reason",
             &drops,
+            ConstCounter::new,
         )?;
-        gauge(
+        metric(
             e,
             "policy_version",
             "Latest published policy version",
-            s.policy_version,
+            ConstGauge::new(s.policy_version),
         )?;
-        gauge(
+        metric(
             e,
             "policy_lag_max",
             "Largest policy lag of a stored record over the last progress window (versions)",
-            s.policy_lag_max,
+            ConstGauge::new(s.policy_lag_max),
         )?;
-        gauge(e, "stage", "Curriculum stage (1 or 2)", s.stage)?;
-        gauge(e, "stage_epoch", "Stage epoch", s.stage_epoch)?;
+        metric(
+            e,
+            "stage",
+            "Curriculum stage (1 or 2)",
+            ConstGauge::new(s.stage),
+        )?;
+        metric(
+            e,
+            "stage_epoch",
+            "Stage epoch",
+            ConstGauge::new(s.stage_epoch),
+        )?;
         let t = s.seconds;
-        counters(
+        family(
             e,
             "time_seconds",
             "Seconds the training thread spent per activity",
@@ -306,13 +298,14 @@ impl Collector for LearnerMetrics {
                 ("publish", t.publish),
                 ("checkpoint", t.checkpoint),
             ],
+            ConstCounter::new,
         )?;
         if let Some(rss) = resident_bytes() {
-            gauge(
+            metric(
                 e,
                 "resident_memory_bytes",
                 "Resident set size of the learner process",
-                rss,
+                ConstGauge::new(rss),
             )?;
         }
         Ok(())
@@ -354,7 +347,7 @@ impl Collector for crate::ingest::IngestCounters {
                 .into_iter()
                 .map(|t| (t.as_str(), pick(self.of(t)).load(Ordering::Relaxed)))
                 .collect();
-            counters(&mut e, name, help, "transport", &values)?;
+            family(&mut e, name, help, "transport", &values, ConstCounter::new)?;
         }
         Ok(())
     }
@@ -367,11 +360,11 @@ pub struct Unauthenticated(pub rfcl_proto::auth::Guard);
 
 impl Collector for Unauthenticated {
     fn encode(&self, mut e: DescriptorEncoder) -> std::fmt::Result {
-        counter(
+        metric(
             &mut e,
             "unauthenticated_calls",
             "gRPC calls refused for a missing or wrong run token",
-            self.0.refused(),
+            ConstCounter::new(self.0.refused()),
         )
     }
 }
@@ -445,7 +438,7 @@ mod tests {
         struct Extra;
         impl Collector for Extra {
             fn encode(&self, mut e: DescriptorEncoder) -> std::fmt::Result {
-                counter(&mut e, "ingest_batches", "Batches", 9u64)
+                metric(&mut e, "ingest_batches", "Batches", ConstCounter::new(9u64))
             }
         }
         metrics.add_collector(Arc::new(Extra));

@@ -50,18 +50,10 @@ fn agent(cfg: &SacConfig, seed: u64) -> Sac {
 }
 
 fn all_params(sac: &Sac) -> HashMap<String, Vec<f64>> {
-    let mut out = HashMap::new();
-    for (prefix, vs) in [
-        ("actor", sac.actor_vars()),
-        ("critic", sac.critic_vars()),
-        ("target", sac.target_critic_vars()),
-        ("temp", sac.temperature_vars()),
-    ] {
-        for (name, t) in vs.variables() {
-            out.insert(format!("{prefix}/{name}"), values(&t));
-        }
-    }
-    out
+    rfcl_learner::checkpoint::network_tensors(sac)
+        .into_iter()
+        .map(|(name, t)| (name, values(&t)))
+        .collect()
 }
 
 fn changed(
@@ -302,7 +294,7 @@ fn each_update_changes_only_its_own_parameters() {
     sac.update_critic(&batch);
     let after = all_params(&sac);
     assert!(changed(&before, &after, "critic/") && changed(&before, &after, "target/"));
-    assert!(!changed(&before, &after, "actor/") && !changed(&before, &after, "temp/"));
+    assert!(!changed(&before, &after, "actor/") && !changed(&before, &after, "temperature/"));
     // Polyak after the critic step: θ̄ ← (1 − τ) θ̄ + τ θ.
     let critic_now = sac.critic_vars().variables();
     for (name, target) in sac.target_critic_vars().variables() {
@@ -323,12 +315,12 @@ fn each_update_changes_only_its_own_parameters() {
     let after = all_params(&sac);
     assert!(changed(&before, &after, "actor/"));
     assert!(!changed(&before, &after, "critic/") && !changed(&before, &after, "target/"));
-    assert!(!changed(&before, &after, "temp/"));
+    assert!(!changed(&before, &after, "temperature/"));
 
     let before = after;
     sac.update_temperature(&step.entropy);
     let after = all_params(&sac);
-    assert!(changed(&before, &after, "temp/"));
+    assert!(changed(&before, &after, "temperature/"));
     assert!(!changed(&before, &after, "actor/") && !changed(&before, &after, "critic/"));
 }
 
@@ -692,14 +684,14 @@ fn reinitialise_starts_only_the_chosen_parts_afresh() {
     let now = all_params(&sac);
     assert_eq!(params_under(&sac, "actor/"), params_under(&fresh, "actor/"));
     assert!(changed(&trained, &now, "actor/"));
-    for part in ["critic/", "target/", "temp/"] {
+    for part in ["critic/", "target/", "temperature/"] {
         assert!(!changed(&trained, &now, part), "{part}");
     }
     assert_eq!(steps(&sac), [0, 1, 1]);
 
     // load_critic false: critics, target (a copy of them) and α are the fresh ones.
     sac.reinitialise(false, true, &net, 99).unwrap();
-    for part in ["actor/", "critic/", "temp/"] {
+    for part in ["actor/", "critic/", "temperature/"] {
         assert_eq!(
             params_under(&sac, part),
             params_under(&fresh, part),

@@ -28,17 +28,12 @@ fn policy_snippet() -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_load() {
     let dir = tempfile::tempdir().unwrap();
-    let run_dir = dir.path().join("run");
-    let demos = write_demos(dir.path());
     // data_action_scale: the export records the env-action scale of spec 6.4, and GetRunInfo
     // gives actors the same.
     let config = write_config(dir.path(), W, STEPS, "");
     add_train_keys(&config, "  data_action_scale: 1.5\n");
-    let curriculum = Curriculum::start(&config, &demos, &run_dir);
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let mut learner = Learner::start(&args);
-    let mut client = learner.client().await;
+    let mut pair = Pair::start(dir.path(), config, &[]);
+    let mut client = pair.learner.client().await;
     // Actors learn s from the run description and step their envs with a / s (spec 6.4).
     let info = client
         .get_run_info(rfcl_proto::v1::GetRunInfoRequest::default())
@@ -51,20 +46,20 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
 
     let summary = push(&mut client, batches(0..STEPS, 10, 0)).await.unwrap();
     assert_eq!(summary.accepted, STEPS);
-    let status = learner.wait(Duration::from_secs(60));
+    let status = pair.learner.wait(Duration::from_secs(60));
     assert!(
         status.success(),
         "the learner exits 0 at the budget: {status}"
     );
 
-    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))
+    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&pair.run_dir))
         .unwrap()
         .unwrap();
     assert_eq!(manifest.progress.env_steps, STEPS);
     let iterations = earned(STEPS, W);
     assert_eq!(manifest.progress.critic_updates, G * iterations);
 
-    let (policy, desc) = PolicyNet::from_export(&run_dir).unwrap();
+    let (policy, desc) = PolicyNet::from_export(&pair.run_dir).unwrap();
     assert_eq!((desc.shape.obs_dim, desc.shape.action_dim), (OBS, ACT));
     assert_eq!(desc.shape.actor_features, vec![16, 16]);
     assert_eq!(
@@ -94,7 +89,7 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
     let from_torch: Vec<f32> = serde_json::from_str(&child::succeed(
         Command::new(&python)
             .arg(&script)
-            .arg(&run_dir)
+            .arg(&pair.run_dir)
             .args(obs.iter().map(|o| o.to_string())),
     ))
     .unwrap();
@@ -131,7 +126,10 @@ async fn the_budget_ends_the_run_with_a_checkpoint_and_an_export_pytorch_can_loa
         );
         serde_json::from_str(&out).unwrap()
     };
-    for path in [run_dir.clone(), run_dir.join("policy.safetensors")] {
+    for path in [
+        pair.run_dir.clone(),
+        pair.run_dir.join("policy.safetensors"),
+    ] {
         let from_numpy = numpy(&path);
         assert_eq!(from_numpy.len(), ACT);
         for (n, r) in from_numpy.iter().zip(&from_rust) {
@@ -151,20 +149,14 @@ async fn a_budget_between_iterations_ends_with_one_more_iteration() {
     const BETWEEN: u64 = 62;
     assert_ne!(BETWEEN % K, 0);
     let dir = tempfile::tempdir().unwrap();
-    let run_dir = dir.path().join("run");
-    let demos = write_demos(dir.path());
-    let config = write_config(dir.path(), W, BETWEEN, "");
-    let curriculum = Curriculum::start(&config, &demos, &run_dir);
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let mut learner = Learner::start(&args);
-    let mut client = learner.client().await;
+    let mut pair = start_pair(dir.path(), W, BETWEEN, "", &[]);
+    let mut client = pair.learner.client().await;
     push(&mut client, batches(0..BETWEEN, 10, 0)).await.unwrap();
-    let status = learner.wait(Duration::from_secs(60));
+    let status = pair.learner.wait(Duration::from_secs(60));
     assert!(status.success(), "{status}");
 
     let iterations = earned(BETWEEN, W) + 1;
-    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))
+    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&pair.run_dir))
         .unwrap()
         .unwrap();
     assert_eq!(
@@ -174,7 +166,7 @@ async fn a_budget_between_iterations_ends_with_one_more_iteration() {
         ),
         (BETWEEN, G * iterations)
     );
-    let (_, desc) = PolicyNet::from_export(&run_dir).unwrap();
+    let (_, desc) = PolicyNet::from_export(&pair.run_dir).unwrap();
     assert_eq!(
         (desc.policy_version, desc.env_steps),
         (1 + iterations, BETWEEN)

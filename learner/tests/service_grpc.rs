@@ -15,12 +15,8 @@ const W: u64 = 8;
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn run_info_updates_on_schedule_and_whole_policy_versions() {
     let dir = tempfile::tempdir().unwrap();
-    let Pair {
-        config,
-        curriculum,
-        learner,
-    } = start_pair(dir.path(), W, 100_000, "", &[]);
-    let mut client = learner.client().await;
+    let pair = start_pair(dir.path(), W, 100_000, "", &[]);
+    let mut client = pair.learner.client().await;
 
     let info = client
         .get_run_info(v1::GetRunInfoRequest {
@@ -36,13 +32,13 @@ async fn run_info_updates_on_schedule_and_whole_policy_versions() {
     assert_eq!(info.run_name, "ltest");
     // Not on the learner's host: gRPC (service_shm.rs covers the same-host case).
     assert_eq!(info.transport, "grpc");
-    assert_eq!(info.curriculum_addr, curriculum.grpc);
+    assert_eq!(info.curriculum_addr, pair.curriculum.grpc);
     assert_eq!(info.run_seed, 3);
     assert_eq!(info.policy_version, 1);
     // No train.data_action_scale: no scale (spec 6.4; service_export.rs has one).
     assert!(info.action_scale.is_empty());
     assert!(!info.learner_hostname.is_empty());
-    let cfg = rfcl_core::config::resolve_file(&config, &[]).unwrap();
+    let cfg = rfcl_core::config::resolve_file(&pair.config, &[]).unwrap();
     assert_eq!(info.config_yaml, rfcl_core::config::to_yaml(&cfg));
 
     // An actor with no policy asks for versions after 0 and gets the initial one at once.
@@ -114,13 +110,7 @@ async fn run_info_updates_on_schedule_and_whole_policy_versions() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sync_mode_never_lets_data_run_ahead_of_the_updates() {
     let dir = tempfile::tempdir().unwrap();
-    let pair = start_pair(
-        dir.path(),
-        W,
-        100_000,
-        "  utd_mode: sync\n",
-        &["--queue-batches", "2"],
-    );
+    let pair = start_sync_pair(dir.path(), W);
     let learner = &pair.learner;
     let mut pusher = learner.client().await;
     let mut watcher = learner.client().await;

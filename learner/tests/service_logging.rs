@@ -37,17 +37,9 @@ acc = EventAccumulator(sys.argv[1], size_guidance={"scalars": 0})
 acc.Reload()
 print(json.dumps({t: [[e.step, e.value] for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}))
 "#;
-    let out = Command::new(python())
-        .args(["-c", SCRIPT])
-        .arg(dir)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "EventAccumulator failed (is tensorboard installed in .venv? pip install -r python/requirements.txt):\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
+    // Needs the venv's tensorboard (python/requirements.txt).
+    let out = rfcl_testkit::child::succeed(Command::new(python()).args(["-c", SCRIPT]).arg(dir));
+    serde_json::from_str(&out).unwrap()
 }
 
 /// `GET /metrics` over a plain HTTP/1.1 connection: (status line, body).

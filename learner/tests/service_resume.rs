@@ -9,6 +9,8 @@ use std::path::Path;
 use std::time::Duration;
 
 use rfcl_learner::checkpoint::{self, Manifest};
+use rfcl_proto::auth::AuthChannel;
+use rfcl_proto::v1::learner_client::LearnerClient;
 use service_support::*;
 
 const W: u64 = 8;
@@ -141,6 +143,33 @@ impl Run {
     }
 }
 
+/// The manifest of the checkpoint in `ckpt` once one holds `env_steps` (within 30 s).
+async fn checkpoint_at(ckpt: &Path, env_steps: u64) -> Manifest {
+    let start = std::time::Instant::now();
+    loop {
+        if let Some(m) = checkpoint::read_manifest(ckpt).unwrap() {
+            if m.progress.env_steps == env_steps {
+                return m;
+            }
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "no checkpoint at {env_steps} env steps within 30 s"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The resumed learner's Health reports the checkpoint's env steps, updates and policy version.
+async fn assert_restored(client: &mut LearnerClient<AuthChannel>, manifest: &Manifest) {
+    let h = health(client).await;
+    let p = &manifest.progress;
+    assert_eq!(
+        (h.env_steps, h.updates, h.policy_version),
+        (p.env_steps, p.critic_updates, p.policy_version)
+    );
+}
+
 async fn feed(learner: &Learner, range: std::ops::Range<u64>) {
     let mut client = learner.client().await;
     let end = range.end;
@@ -173,21 +202,13 @@ async fn sigkill_then_resume_restores_everything_and_continues_exactly() {
     let (at_40, manifest_40) = snapshot(&b.run_dir);
     assert_eq!(manifest_40.progress.env_steps, 40);
     assert_eq!(manifest_40.online.len, 40);
-    assert_eq!(manifest_40.offline.unwrap().len, DEMOS * DEMO_LEN);
+    assert_eq!(manifest_40.offline.as_ref().unwrap().len, DEMOS * DEMO_LEN);
     learner.sigkill();
 
     // Resumed: the state is the checkpoint's, published version and counters included...
     let mut learner = b.start(true);
     let mut client = learner.client().await;
-    let h = health(&mut client).await;
-    assert_eq!(
-        (h.env_steps, h.updates, h.policy_version),
-        (
-            40,
-            manifest_40.progress.critic_updates,
-            manifest_40.progress.policy_version
-        )
-    );
+    assert_restored(&mut client, &manifest_40).await;
     let mut watch = client
         .watch_policy(rfcl_proto::v1::WatchPolicyRequest { after_version: 0 })
         .await
@@ -241,15 +262,7 @@ async fn a_learner_that_finds_its_checkpoint_in_its_run_dir_continues_it() {
     // Started exactly as the first time (no --resume), as a container engine restarts it.
     let mut learner = run.start(false);
     let mut client = learner.client().await;
-    let h = health(&mut client).await;
-    assert_eq!(
-        (h.env_steps, h.updates, h.policy_version),
-        (
-            40,
-            manifest_40.progress.critic_updates,
-            manifest_40.progress.policy_version
-        )
-    );
+    assert_restored(&mut client, &manifest_40).await;
     assert!(learner.sigterm().success());
     let (resumed, _) = snapshot(&run.run_dir);
     assert_eq!(resumed.networks, at_40.networks, "weights");
@@ -265,19 +278,7 @@ async fn a_learner_killed_before_its_first_step_checkpoint_resumes_from_its_wall
     feed(&learner, 0..30).await;
     // Nothing arrives any more: the next wall-time checkpoint holds all 30 env steps.
     let ckpt = checkpoint::checkpoint_dir(&run.run_dir);
-    let start = std::time::Instant::now();
-    let manifest = loop {
-        if let Some(m) = checkpoint::read_manifest(&ckpt).unwrap() {
-            if m.progress.env_steps == 30 {
-                break m;
-            }
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(30),
-            "no wall-time checkpoint at 30 env steps within 30 s"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    };
+    let manifest = checkpoint_at(&ckpt, 30).await;
     assert_eq!(manifest.online.len, 30);
     // With nothing new, no further checkpoint is taken.
     tokio::time::sleep(Duration::from_millis(600)).await;
@@ -287,30 +288,11 @@ async fn a_learner_killed_before_its_first_step_checkpoint_resumes_from_its_wall
 
     let mut learner = run.start(false);
     let mut client = learner.client().await;
-    let h = health(&mut client).await;
-    assert_eq!(
-        (h.env_steps, h.updates, h.policy_version),
-        (
-            30,
-            manifest.progress.critic_updates,
-            manifest.progress.policy_version
-        )
-    );
+    assert_restored(&mut client, &manifest).await;
     // More rows reach the resumed learner's online buffer: its next wall-time checkpoint writes
     // only the segment they changed (one: 16,384-row segments), keeping the others' files.
     feed_from(&learner, 30..36, 36).await;
-    let start = std::time::Instant::now();
-    let next = loop {
-        let m = checkpoint::read_manifest(&ckpt).unwrap().unwrap();
-        if m.progress.env_steps == 36 {
-            break m;
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(30),
-            "no checkpoint at 36 env steps"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    };
+    let next = checkpoint_at(&ckpt, 36).await;
     assert_eq!(next.online.segments.len(), 1);
     assert_ne!(next.online.segments[0], manifest.online.segments[0]);
     // The offline buffer (the demos) did not change: its file is the first checkpoint's.

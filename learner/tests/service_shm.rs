@@ -73,18 +73,8 @@ impl Versions {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shared_memory_and_grpc_feed_one_ingest_and_policies_arrive_whole() {
     let dir = tempfile::tempdir().unwrap();
-    let Pair {
-        config,
-        curriculum: _curriculum,
-        learner,
-    } = start_pair(
-        dir.path(),
-        W,
-        100_000,
-        "  utd_mode: sync\n",
-        &["--queue-batches", "2"],
-    );
-    let mut client = learner.client().await;
+    let pair = start_sync_pair(dir.path(), W);
+    let mut client = pair.learner.client().await;
 
     // A process on another host is told gRPC; one on this host shared memory, with the services.
     let run_info = |host: String| v1::GetRunInfoRequest {
@@ -118,7 +108,7 @@ async fn shared_memory_and_grpc_feed_one_ingest_and_policies_arrive_whole() {
         TransitionPublisher::open(node, &info.shm_transitions_service, 6, record_bytes()).unwrap();
 
     // A new subscriber gets the current version (the initial one) from the service's history.
-    let cfg = rfcl_core::config::resolve_file(&config, &[]).unwrap();
+    let cfg = rfcl_core::config::resolve_file(&pair.config, &[]).unwrap();
     let mut versions = Versions::default();
     while versions.seen.is_empty() {
         versions.take(&policy, &cfg);
@@ -134,7 +124,7 @@ async fn shared_memory_and_grpc_feed_one_ingest_and_policies_arrive_whole() {
         publisher
     });
     let grpc_batches = batches(SHM_RECORDS..SHM_RECORDS + GRPC_RECORDS, 8, 0);
-    let mut pusher = learner.client().await;
+    let mut pusher = pair.learner.client().await;
     let pushed = tokio::spawn(async move { push(&mut pusher, grpc_batches).await });
 
     // Policies as a same-host actor sees them, while the sync limiter holds the data back: the

@@ -5,32 +5,30 @@
 //! updates again, keeping its optimiser states.
 mod service_support;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 
 use rfcl_learner::checkpoint;
+use rfcl_proto::auth::AuthChannel;
+use rfcl_proto::v1::learner_client::LearnerClient;
 use service_support::*;
 
 const W: u64 = 8;
 
-/// A run in `dir/run` (W warm-up steps, a budget no test reaches, `train_keys` added to its
-/// `train:` section) with its curriculum server and learner.
-fn start(dir: &Path, train_keys: &str) -> (PathBuf, Curriculum, Learner) {
-    let run_dir = dir.join("run");
-    let demos = write_demos(dir);
-    let config = write_config(dir, W, 100_000, "");
+/// A run in a new temporary directory (W warm-up steps, a budget no test reaches, `train_keys`
+/// added to its `train:` section) with its curriculum server and learner, and a learner client.
+async fn start(train_keys: &str) -> (tempfile::TempDir, Pair, LearnerClient<AuthChannel>) {
+    let dir = tempfile::tempdir().unwrap();
+    let config = write_config(dir.path(), W, 100_000, "");
     add_train_keys(&config, train_keys);
-    let curriculum = Curriculum::start(&config, &demos, &run_dir);
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
-    let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    (run_dir, curriculum, Learner::start(&args))
+    let pair = Pair::start(dir.path(), config, &[]);
+    let client = pair.learner.client().await;
+    (dir, pair, client)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
-    let dir = tempfile::tempdir().unwrap();
-    let (run_dir, curriculum, mut learner) = start(dir.path(), "");
-    let mut client = learner.client().await;
+    let (_dir, mut pair, mut client) = start("").await;
 
     // Stage 1: 40 env steps, 8 iterations.
     push(&mut client, batches(0..40, 8, 0)).await.unwrap();
@@ -39,7 +37,7 @@ async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
     })
     .await;
 
-    let epoch = curriculum.drive_to_stage_2().await;
+    let epoch = pair.curriculum.drive_to_stage_2().await;
     assert_eq!(epoch, 1);
 
     // Records of the new epoch: accepted (after the learner applied the announcement), and the
@@ -61,8 +59,8 @@ async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
     let h = wait_health(&mut client, Duration::from_secs(30), |h| h.updates == G * 9).await;
     assert_eq!((h.env_steps, h.policy_version), (52, 10));
 
-    assert!(learner.sigterm().success());
-    let ckpt = checkpoint::checkpoint_dir(&run_dir);
+    assert!(pair.learner.sigterm().success());
+    let ckpt = checkpoint::checkpoint_dir(&pair.run_dir);
     let manifest = checkpoint::read_manifest(&ckpt).unwrap().unwrap();
     let p = &manifest.progress;
     assert_eq!((p.stage, p.stage_epoch), (2, 1));
@@ -76,11 +74,11 @@ async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
     assert_eq!((offline.len, offline.capacity), (40, 1000));
     assert_eq!(manifest.online.len, 12);
     // Optimiser states were kept: Adam's step counts run on over the transition.
-    assert_eq!(adam_step_count(&run_dir, "critic"), (G * 9) as i64);
-    assert_eq!(adam_step_count(&run_dir, "actor"), (G * 9) as i64);
+    assert_eq!(adam_step_count(&pair.run_dir, "critic"), (G * 9) as i64);
+    assert_eq!(adam_step_count(&pair.run_dir, "actor"), (G * 9) as i64);
 
     // The metrics rows show the stage change with its step.
-    let csv = std::fs::read_to_string(run_dir.join("metrics.csv")).unwrap();
+    let csv = std::fs::read_to_string(pair.run_dir.join("metrics.csv")).unwrap();
     let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
     let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
     let last: Vec<String> = csv
@@ -98,16 +96,14 @@ async fn stage_2_moves_the_buffers_drops_late_records_and_warms_up_again() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
-    let dir = tempfile::tempdir().unwrap();
-    let (run_dir, curriculum, mut learner) = start(dir.path(), "  stage_1_only: true\n");
-    let mut client = learner.client().await;
+    let (_dir, mut pair, mut client) = start("  stage_1_only: true\n").await;
     push(&mut client, batches(0..20, 5, 0)).await.unwrap();
     wait_health(&mut client, Duration::from_secs(30), |h| h.env_steps == 20).await;
 
     // Successful episodes until the curriculum server ends stage 1, and with it the run.
-    let mut cur = curriculum.client().await;
+    let mut cur = pair.curriculum.client().await;
     for _ in 0..5000 {
-        if learner.child.try_wait().unwrap().is_some() {
+        if pair.learner.child.try_wait().unwrap().is_some() {
             break;
         }
         let Ok(lease) = cur
@@ -123,9 +119,9 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
         let lease = lease.into_inner();
         let _ = cur.report(success_report(&lease)).await;
     }
-    let status = learner.wait(Duration::from_secs(60));
+    let status = pair.learner.wait(Duration::from_secs(60));
     assert!(status.success(), "{status}");
-    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&run_dir))
+    let manifest = checkpoint::read_manifest(&checkpoint::checkpoint_dir(&pair.run_dir))
         .unwrap()
         .unwrap();
     assert_eq!(manifest.progress.env_steps, 20);
@@ -133,15 +129,12 @@ async fn with_stage_1_only_the_end_of_stage_1_ends_the_run() {
         (manifest.progress.stage, manifest.progress.stage_epoch),
         (1, 1)
     );
-    assert!(run_dir.join("policy.safetensors").exists());
+    assert!(pair.run_dir.join("policy.safetensors").exists());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_actor() {
-    let dir = tempfile::tempdir().unwrap();
-    let (run_dir, curriculum, mut learner) =
-        start(dir.path(), "  load_actor: false\n  load_critic: false\n");
-    let mut client = learner.client().await;
+    let (_dir, mut pair, mut client) = start("  load_actor: false\n  load_critic: false\n").await;
 
     push(&mut client, batches(0..40, 8, 0)).await.unwrap();
     let h = wait_health(&mut client, Duration::from_secs(60), |h| {
@@ -149,7 +142,7 @@ async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_
     })
     .await;
     let stage_1_version = h.policy_version;
-    curriculum.drive_to_stage_2().await;
+    pair.curriculum.drive_to_stage_2().await;
 
     // The fresh actor is published at the stage change, before any stage-2 update.
     push(&mut client, batches(40..48, 8, 1)).await.unwrap();
@@ -160,10 +153,10 @@ async fn load_actor_and_critic_false_start_stage_2_afresh_and_publish_the_fresh_
     wait_health(&mut client, Duration::from_secs(30), |h| h.updates == G * 9).await;
 
     // Fresh Adam states: the step counts hold stage 2's one iteration only.
-    assert!(learner.sigterm().success());
+    assert!(pair.learner.sigterm().success());
     for optimiser in ["critic", "actor", "temperature"] {
         assert_eq!(
-            adam_step_count(&run_dir, optimiser),
+            adam_step_count(&pair.run_dir, optimiser),
             G as i64,
             "{optimiser}"
         );

@@ -8,7 +8,7 @@
 //!   versions seen only grow, every one is whole (each byte is the one its version wrote), and the
 //!   last one arrives.
 use std::io::{BufRead, BufReader, Read, Write};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use rfcl_shm::frame::TransitionHeader;
@@ -36,6 +36,18 @@ fn policy_byte(version: u64, i: usize) -> u8 {
 }
 
 /// Starts this test binary as `role`, with `service` to use; its stdin stays open until dropped.
+/// Reads `child`'s stdout up to its "ready" line (the test harness prints its own lines first);
+/// `who` names it when it exits first. Keep the reader: the child's later lines need the pipe.
+fn wait_ready(child: &mut Child, who: &str) -> BufReader<ChildStdout> {
+    let mut stdout = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    while !line.trim_end().ends_with("ready") {
+        line.clear();
+        assert!(stdout.read_line(&mut line).unwrap() > 0, "{who} exited");
+    }
+    stdout
+}
+
 fn child(role: &str, service: &str) -> Child {
     Command::new(std::env::current_exe().unwrap())
         .args([
@@ -190,16 +202,7 @@ fn a_burst_far_bigger_than_the_queue_arrives_whole_and_in_order() {
 fn policy_versions_only_grow_and_are_never_torn() {
     let names = ServiceNames::new("shm-test", &new_run_id());
     let mut publisher = child("policy-publisher", &names.policy);
-    let mut stdout = BufReader::new(publisher.stdout.take().unwrap());
-    // The test harness prints its own lines first.
-    let mut line = String::new();
-    while !line.trim_end().ends_with("ready") {
-        line.clear();
-        assert!(
-            stdout.read_line(&mut line).unwrap() > 0,
-            "the publisher exited"
-        );
-    }
+    let _stdout = wait_ready(&mut publisher, "the publisher");
     let (node, _) = ShmNode::create("shm-test", "policy-reader").unwrap();
     let subscriber = PolicySubscriber::open(node, &names.policy).unwrap();
     let mut stdin = publisher.stdin.take().unwrap();
@@ -248,15 +251,7 @@ fn opening_a_service_that_is_not_there_names_it() {
 fn a_killed_processs_node_and_service_are_cleaned_up_by_the_next_process_of_its_run() {
     let run = format!("shm-test-kill-{}", new_run_id());
     let mut victim = child("killed", &run);
-    let mut stdout = BufReader::new(victim.stdout.take().unwrap());
-    let mut line = String::new();
-    while !line.trim_end().ends_with("ready") {
-        line.clear();
-        assert!(
-            stdout.read_line(&mut line).unwrap() > 0,
-            "the victim exited"
-        );
-    }
+    let _stdout = wait_ready(&mut victim, "the victim");
     victim.kill().unwrap();
     victim.wait().unwrap();
 

@@ -177,24 +177,16 @@ fn learner(seconds: f64, args: &LearnerArgs) -> Result<()> {
             args.dims
         );
     };
-    let parallelisms = args
-        .parallelism
-        .iter()
-        .map(|name| match name.as_str() {
-            "members" => Ok(Parallelism::Members),
-            "ops" => Ok(Parallelism::Ops),
-            other => bail!("--parallelism: '{other}' is not one of members, ops"),
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let backends = args
-        .backend
-        .iter()
-        .map(|name| match name.as_str() {
-            "libtorch" => Ok(Backend::Libtorch),
-            "fused" => Ok(Backend::Fused),
-            other => bail!("--backend: '{other}' is not one of libtorch, fused"),
-        })
-        .collect::<Result<Vec<_>>>()?;
+    let parallelisms = choose(
+        "--parallelism",
+        &args.parallelism,
+        &[("members", Parallelism::Members), ("ops", Parallelism::Ops)],
+    )?;
+    let backends = choose(
+        "--backend",
+        &args.backend,
+        &[("libtorch", Backend::Libtorch), ("fused", Backend::Fused)],
+    )?;
     let mut reports = Vec::new();
     for (&parallelism, &backend) in parallelisms
         .iter()
@@ -306,4 +298,18 @@ fn curriculum(clients: usize, seconds: f64, connect: Option<String>) -> Result<(
     });
     println!("{}", serde_json::to_string_pretty(&json)?);
     Ok(())
+}
+
+/// Each of `names` as `choices` maps it, or an error naming `flag`, the name and the choices.
+fn choose<T: Copy>(flag: &str, names: &[String], choices: &[(&str, T)]) -> Result<Vec<T>> {
+    names
+        .iter()
+        .map(|name| match choices.iter().find(|(n, _)| n == name) {
+            Some((_, value)) => Ok(*value),
+            None => {
+                let all: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
+                bail!("{flag}: '{name}' is not one of {}", all.join(", "))
+            }
+        })
+        .collect()
 }

@@ -32,6 +32,17 @@ pub struct ReplayArgs {
     pub config: Option<PathBuf>,
 }
 
+/// How many successful demos to write, and where: `generate`'s and `record`'s.
+#[derive(clap::Args)]
+pub struct DemoTarget {
+    /// Number of successful demos.
+    #[arg(short = 'n', long, default_value_t = 5)]
+    pub num: u32,
+    /// Output .h5 file (a .json sidecar is written beside it).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
 #[derive(Subcommand)]
 pub enum DemosCommand {
     /// Print episodes, lengths, dims, success flags and the state layout of a demo file.
@@ -71,12 +82,8 @@ pub enum DemosCommand {
         /// metaworld/pick-place-v3 (MetaWorld's scripted policies).
         #[arg(long)]
         env: String,
-        /// Number of successful demos.
-        #[arg(short = 'n', long, default_value_t = 5)]
-        num: u32,
-        /// Output .h5 file (a .json sidecar is written beside it).
-        #[arg(long)]
-        out: PathBuf,
+        #[command(flatten)]
+        target: DemoTarget,
         /// Seed of the generator (PointMaze: it orders the start cells after the three dead ends
         /// that the maze-covering demos always start from; MetaWorld: the first episode seed;
         /// ManiSkill3: the first motion-planning seed, the planner plans the seeds below it too and
@@ -96,12 +103,8 @@ pub enum DemosCommand {
         /// package in env.imports).
         #[arg(long)]
         policy: String,
-        /// Number of successful demos.
-        #[arg(short = 'n', long, default_value_t = 5)]
-        num: u32,
-        /// Output .h5 file (a .json sidecar is written beside it).
-        #[arg(long)]
-        out: PathBuf,
+        #[command(flatten)]
+        target: DemoTarget,
         /// First episode seed.
         #[arg(long, default_value_t = 0)]
         seed: u64,
@@ -149,21 +152,24 @@ pub fn run(command: DemosCommand) -> Result<ExitCode> {
                 false => Ok(ExitCode::FAILURE),
             }
         }
-        DemosCommand::Generate {
-            env,
-            num,
-            out,
-            seed,
-        } => generate(&env, num, &out, seed).map(|()| ExitCode::SUCCESS),
+        DemosCommand::Generate { env, target, seed } => {
+            generate(&env, target.num, &target.out, seed).map(|()| ExitCode::SUCCESS)
+        }
         DemosCommand::Record {
             config,
             policy,
-            num,
-            out,
+            target,
             seed,
             max_attempts,
-        } => suites::record(&config, &policy, num, &out, seed, max_attempts)
-            .map(|()| ExitCode::SUCCESS),
+        } => suites::record(
+            &config,
+            &policy,
+            target.num,
+            &target.out,
+            seed,
+            max_attempts,
+        )
+        .map(|()| ExitCode::SUCCESS),
         DemosCommand::Convert { input, out, suite } => {
             if suites::handles_convert(&input, &suite) {
                 return suites::convert(&input, &out, &suite).map(|()| ExitCode::SUCCESS);

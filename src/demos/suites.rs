@@ -100,17 +100,8 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
         })?;
     create_parent(out)?;
     let bar = bar(u64::from(num), format!("{task}: scripted demos"));
-    let args: Vec<String> = vec![
-        "metaworld".into(),
-        "--task".into(),
-        task.clone(),
-        "-n".into(),
-        num.to_string(),
-        "--out".into(),
-        path_str(out)?.into(),
-        "--seed".into(),
-        seed.to_string(),
-    ];
+    let mut args: Vec<String> = vec!["metaworld".into(), "--task".into(), task.clone()];
+    args.extend(target_args(num, out, seed)?);
     run_demos_tool(&bar, &args, &format!("`rfcl demos generate --env {env}`"))?;
     bar.finish_and_clear();
     let set = load_written(out, &task)?;
@@ -125,6 +116,18 @@ pub fn generate(env: &str, num: u32, out: &Path, seed: u64) -> Result<()> {
     }
     report(&set, out, "generated");
     Ok(())
+}
+
+/// The demos tool's `-n NUM --out OUT --seed SEED`.
+fn target_args(num: u32, out: &Path, seed: u64) -> Result<[String; 6]> {
+    Ok([
+        "-n".into(),
+        num.to_string(),
+        "--out".into(),
+        path_str(out)?.into(),
+        "--seed".into(),
+        seed.to_string(),
+    ])
 }
 
 /// `rfcl demos record --config CFG --policy MODULE:CALLABLE -n N --out OUT [--seed S]
@@ -164,13 +167,8 @@ pub fn record(
         rfcl_actor::python::env_options(env).to_string(),
         "--policy".into(),
         policy.into(),
-        "-n".into(),
-        num.to_string(),
-        "--out".into(),
-        path_str(out)?.into(),
-        "--seed".into(),
-        seed.to_string(),
     ];
+    args.extend(target_args(num, out, seed)?);
     if let Some(k) = max_attempts {
         args.extend(["--max-attempts".into(), k.to_string()]);
     }

@@ -67,6 +67,17 @@ pub fn succeed(cmd: &mut Command) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// Runs `cmd` to completion like [`output`]: whether it succeeded, and its stdout followed by its
+/// stderr (a command's report and its messages, as a user sees them).
+pub fn outcome(cmd: &mut Command) -> (bool, String) {
+    let out = output(cmd);
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    (
+        out.status.success(),
+        text + &String::from_utf8_lossy(&out.stderr),
+    )
+}
+
 /// Sets the run token of a test's services: `RFCL_TOKEN=token`, and no `RFCL_TOKEN_FILE` from the
 /// test's own environment.
 pub fn with_token<'a>(cmd: &'a mut Command, token: &str) -> &'a mut Command {

@@ -91,6 +91,17 @@ pub fn write_demo_set(set: &DemoSet, path: &Path) {
         .unwrap_or_else(|e| panic!("writing the test demos to {}: {e}", path.display()));
 }
 
+/// Writes a D4RL-format Adroit Door file at `path` with tests/adroit_d4rl.py: `open` episodes
+/// that succeed, `closed` that do not, `steps` steps each.
+pub fn write_d4rl_door(path: &Path, open: u32, closed: u32, steps: u32) {
+    crate::child::succeed(
+        std::process::Command::new(crate::binaries::python())
+            .arg(crate::binaries::workspace_root().join("tests/adroit_d4rl.py"))
+            .arg(path)
+            .args([open, closed, steps].map(|n| n.to_string())),
+    );
+}
+
 /// A copy, in `dir` as `damaged.h5`, of the committed fuzzing reproducer that crashes libhdf5
 /// itself when read (fuzz/artifacts/demo_hdf5/upstream/): every reader of user demo files must
 /// name such a file instead of dying of a segmentation fault.

@@ -9,9 +9,18 @@
 //!   profile) when one is missing;
 //! * [`hdf5`]: the lock that keeps forks away from open HDF5 files;
 //! * [`demos`]: small synthetic demo files whose states say which demo and step they are;
-//! * [`browser`]: headless Chromium for the dashboard's pages.
+//! * [`browser`]: headless Chromium for the dashboard's pages;
+//! * [`assert_contains_all`]: a command's report checked for the lines it must hold.
 pub mod binaries;
 pub mod browser;
 pub mod child;
 pub mod demos;
 pub mod hdf5;
+
+/// Panics naming the first of `needles` that `text` lacks, and showing `text`.
+#[track_caller]
+pub fn assert_contains_all(text: &str, needles: &[&str]) {
+    if let Some(missing) = needles.iter().find(|n| !text.contains(*n)) {
+        panic!("{missing:?} missing from:\n{text}");
+    }
+}

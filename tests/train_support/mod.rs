@@ -57,27 +57,23 @@ pub fn generate_env_demos(env: &str, n: u32, out: &Path) -> PathBuf {
 
 /// [`generate_env_demos`] from the generator's seed `seed` (`--seed`).
 pub fn generate_env_demos_from(env: &str, n: u32, seed: u64, out: &Path) -> PathBuf {
-    let result = Command::new(rfcl())
-        .args([
-            "demos",
-            "generate",
-            "--env",
-            env,
-            "-n",
-            &n.to_string(),
-            "--seed",
-            &seed.to_string(),
-            "--out",
-        ])
-        .arg(out)
-        .output()
-        .unwrap();
-    assert!(
-        result.status.success(),
-        "rfcl demos generate --env {env} failed: {}",
-        String::from_utf8_lossy(&result.stderr)
+    let (n, seed) = (n.to_string(), seed.to_string());
+    succeed(
+        Command::new(rfcl())
+            .args([
+                "demos", "generate", "--env", env, "-n", &n, "--seed", &seed, "--out",
+            ])
+            .arg(out),
     );
     out.to_path_buf()
+}
+
+/// The mean success of the last 5 evaluations at which the whole-run tests stop.
+pub const BAR: f64 = 0.9;
+
+/// The override that stops a run at [`BAR`].
+pub fn stop_at_bar() -> String {
+    format!("service.stop_at_eval_success={BAR}")
 }
 
 /// `rfcl train` of the documented test config on 5 PointMaze demos generated in `dir`, with
@@ -86,14 +82,41 @@ pub fn generate_env_demos_from(env: &str, n: u32, seed: u64, out: &Path) -> Path
 pub fn start_test_run(dir: &Path, overrides: &[String], log: &str) -> Training {
     require_services();
     let demos = generate_demos(dir);
-    let run_dir = dir.join("run");
+    start_run(
+        &test_config(),
+        &demos,
+        overrides,
+        &dir.join("run"),
+        &dir.join(log),
+    )
+}
+
+/// `rfcl train CONFIG train.dataset_path=DEMOS OVERRIDES... --run-dir RUN_DIR`, its stderr to
+/// `log`.
+pub fn start_run(
+    config: &Path,
+    demos: &Path,
+    overrides: &[String],
+    run_dir: &Path,
+    log: &Path,
+) -> Training {
+    Training::start(&train_args(config, demos, overrides, run_dir), run_dir, log)
+}
+
+/// The arguments of `rfcl train` for [`start_run`].
+pub fn train_args(
+    config: &Path,
+    demos: &Path,
+    overrides: &[String],
+    run_dir: &Path,
+) -> Vec<String> {
     let mut args = vec![
-        test_config().display().to_string(),
+        config.display().to_string(),
         format!("train.dataset_path={}", demos.display()),
     ];
     args.extend_from_slice(overrides);
     args.extend(["--run-dir".to_string(), run_dir.display().to_string()]);
-    Training::start(&args, &run_dir, &dir.join(log))
+    args
 }
 
 /// A running `rfcl train`: stdout lines are collected, stderr goes to a file. Dropped while it

@@ -3,7 +3,41 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use rfcl_actor::env::Env;
+use rfcl_actor::python::{PythonEnv, WorkerSpec};
+use rfcl_core::demo::DemoSet;
+
 use super::*;
+
+/// Replays each demo of `set` state by state through the Rust bridge to `spec`'s worker: reset
+/// with the demo's seed, set state t (the first `compared` observation values must read back
+/// within 1e-5), apply action t; the success flags must be the demo's, ending in success. Load
+/// `set` before calling: the worker is forked here.
+pub fn replay_demos(spec: WorkerSpec, set: &DemoSet, compared: usize) {
+    let mut env = PythonEnv::start(spec, 0).unwrap();
+    assert_eq!(
+        env.state_layout(),
+        &set.state_layout,
+        "adapter and demo file agree"
+    );
+    for demo in &set.demos {
+        let mut replayed = Vec::with_capacity(demo.len());
+        for t in 0..demo.len() {
+            let obs = env
+                .reset_to_state(demo.reset.seed, &demo.reset.options, demo.state_row(t))
+                .unwrap();
+            let (obs, recorded) = (&obs[..compared], &demo.obs_row(t)[..compared]);
+            assert!(
+                obs.iter().zip(recorded).all(|(a, b)| (a - b).abs() <= 1e-5),
+                "traj_{} obs {t}: {obs:?} vs {recorded:?}",
+                demo.episode_id
+            );
+            replayed.push(env.step(demo.action_row(t)).unwrap().success);
+        }
+        assert_eq!(replayed, demo.success, "traj_{}", demo.episode_id);
+        assert!(demo.succeeded && demo.success.last() == Some(&true));
+    }
+}
 
 /// The Python worker, next to `rfcl` (rfcl-testkit builds it when missing).
 pub fn sim_worker() -> PathBuf {

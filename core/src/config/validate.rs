@@ -176,9 +176,7 @@ impl RunConfig {
         within("sac.discount", sac.discount, UNIT)?;
         within("sac.tau", sac.tau, Interval(Excluded(0.0), Included(1.0)))?;
         within("sac.initial_temperature", sac.initial_temperature, POSITIVE)?;
-        if let Some(entropy) = sac.target_entropy {
-            within("sac.target_entropy", entropy, REAL)?;
-        }
+        within_opt("sac.target_entropy", sac.target_entropy, REAL)?;
         within("sac.actor_lr", sac.actor_lr, POSITIVE)?;
         within("sac.critic_lr", sac.critic_lr, POSITIVE)?;
         within("sac.temp_lr", sac.temp_lr, POSITIVE)?;
@@ -314,20 +312,11 @@ impl RunConfig {
                 ));
             }
         }
-        if let Some(hang) = service.hang_timeout_s {
-            within(
-                "service.hang_timeout_s",
-                hang,
-                Interval(Included(5.0), Included(86_400.0)),
-            )?;
-        }
-        if let Some(success) = service.stop_at_eval_success {
-            within(
-                "service.stop_at_eval_success",
-                success,
-                Interval(Excluded(0.0), Included(1.0)),
-            )?;
-        }
+        let (hang, success) = (service.hang_timeout_s, service.stop_at_eval_success);
+        let hang_range = Interval(Included(5.0), Included(86_400.0));
+        within_opt("service.hang_timeout_s", hang, hang_range)?;
+        let success_range = Interval(Excluded(0.0), Included(1.0));
+        within_opt("service.stop_at_eval_success", success, success_range)?;
         Ok(())
     }
 }
@@ -523,6 +512,10 @@ fn within(key: &str, value: f64, range: Interval) -> Result<(), ConfigError> {
     ensure(range.contains(value), key, || {
         format!("must be {range}, got {value}")
     })
+}
+
+fn within_opt(key: &str, value: Option<f64>, range: Interval) -> Result<(), ConfigError> {
+    value.map_or(Ok(()), |v| within(key, v, range))
 }
 
 fn at_least<T: PartialOrd + Display>(key: &str, value: T, min: T) -> Result<(), ConfigError> {

@@ -1,25 +1,39 @@
 //! The dashboard's charts, drawn server-side as SVG with plotters. A chart that fails to draw
 //! becomes an error paragraph in the page rather than failing the page.
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
 use super::view::{DemoBar, EvalPoint, LevelRow, MazeSnapshot, MazeView, ProgressPoint};
 
 const CHART_W: u32 = 640;
 
-fn chart_err<E: std::fmt::Debug>(e: E) -> String {
-    format!("<p class=err>chart failed: {e:?}</p>")
+type Root<'a> = DrawingArea<SVGBackend<'a>, plotters::coord::Shift>;
+type Drawn = Result<(), Box<dyn std::error::Error>>;
+
+/// The SVG of a `size` chart that `draw` draws on a white background, or an error paragraph
+/// when drawing fails.
+fn svg_chart(size: (u32, u32), draw: impl FnOnce(&Root<'_>) -> Drawn) -> String {
+    let mut svg = String::new();
+    let result = (|| -> Drawn {
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
+        root.fill(&WHITE)?;
+        draw(&root)?;
+        root.present()?;
+        Ok(())
+    })();
+    match result {
+        Ok(()) => svg,
+        Err(e) => format!("<p class=err>chart failed: {e:?}</p>"),
+    }
 }
 
 /// Horizontal bars, one per demo: the filled part is the part of the demo the curriculum has
 /// reached, (S_i - 1 - t_i) / (S_i - 1); solved demos are green.
 pub fn demo_bars_svg(demos: &[DemoBar]) -> String {
     let height = 40 + 26 * demos.len().max(1) as u32;
-    let mut svg = String::new();
-    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
-        let root = SVGBackend::with_string(&mut svg, (CHART_W, height)).into_drawing_area();
-        root.fill(&WHITE)?;
+    svg_chart((CHART_W, height), |root| {
         let n = demos.len().max(1) as i32;
-        let mut chart = ChartBuilder::on(&root)
+        let mut chart = ChartBuilder::on(root)
             .margin(8)
             .x_label_area_size(28)
             .y_label_area_size(70)
@@ -56,13 +70,8 @@ pub fn demo_bars_svg(demos: &[DemoBar]) -> String {
                 color.filled(),
             )
         }))?;
-        root.present()?;
         Ok(())
-    })();
-    match result {
-        Ok(()) => svg,
-        Err(e) => chart_err(e),
-    }
+    })
 }
 
 /// Side of one maze cell in the heatmap, in pixels.
@@ -86,10 +95,7 @@ pub fn maze_heatmap_svg(maze: &MazeView) -> String {
     let panel_w = cols * MAZE_CELL_PX;
     let width = panels * panel_w + (panels + 1) * gap;
     let height = rows * MAZE_CELL_PX + caption_h + gap;
-    let mut svg = String::new();
-    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
-        let root = SVGBackend::with_string(&mut svg, (width, height)).into_drawing_area();
-        root.fill(&WHITE)?;
+    svg_chart((width, height), |root| {
         let empty = MazeSnapshot::default();
         let snapshots: Vec<&MazeSnapshot> = if maze.snapshots.is_empty() {
             vec![&empty]
@@ -150,13 +156,8 @@ pub fn maze_heatmap_svg(maze: &MazeView) -> String {
                 )))?;
             }
         }
-        root.present()?;
         Ok(())
-    })();
-    match result {
-        Ok(()) => svg,
-        Err(e) => chart_err(e),
-    }
+    })
 }
 
 /// Sampling probability per level, as bars (at most the 60 most likely levels are drawn).
@@ -168,13 +169,10 @@ pub fn level_probabilities_svg(levels: &[LevelRow]) -> String {
             .then(a.level.cmp(&b.level))
     });
     top.truncate(60);
-    let mut svg = String::new();
-    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
-        let root = SVGBackend::with_string(&mut svg, (CHART_W, 220)).into_drawing_area();
-        root.fill(&WHITE)?;
+    svg_chart((CHART_W, 220), |root| {
         let n = top.len().max(1) as i32;
         let max_p = top.first().map(|l| l.probability).unwrap_or(1.0).max(1e-9);
-        let mut chart = ChartBuilder::on(&root)
+        let mut chart = ChartBuilder::on(root)
             .margin(8)
             .x_label_area_size(28)
             .y_label_area_size(50)
@@ -201,13 +199,8 @@ pub fn level_probabilities_svg(levels: &[LevelRow]) -> String {
                 color.filled(),
             )
         }))?;
-        root.present()?;
         Ok(())
-    })();
-    match result {
-        Ok(()) => svg,
-        Err(e) => chart_err(e),
-    }
+    })
 }
 
 /// One line of the progress chart: its legend, its colour and what it plots of each sample.
@@ -222,24 +215,27 @@ pub const PROGRESS_LEGEND: [(&str, &str); 4] = [
     ("eval success at end", "#ff0000"),
 ];
 
+type FractionsChart<'a, 'b> =
+    ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// A chart of fractions (0 to 1) against env steps, from 0 to the largest of `steps`.
+fn fractions_chart<'a, 'b>(
+    root: &'a Root<'b>,
+    steps: impl Iterator<Item = u64>,
+) -> Result<FractionsChart<'a, 'b>, Box<dyn std::error::Error>> {
+    let max_x = steps.max().unwrap_or(1).max(1) as f64;
+    Ok(ChartBuilder::on(root)
+        .margin(8)
+        .x_label_area_size(28)
+        .y_label_area_size(40)
+        .build_cartesian_2d(0f64..max_x, 0f64..1.02f64)?)
+}
+
 /// Curriculum progress and success rates against env steps (the page prints [`PROGRESS_LEGEND`]).
 pub fn progress_svg(history: &[ProgressPoint], evals: &[EvalPoint]) -> String {
-    let mut svg = String::new();
-    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
-        let root = SVGBackend::with_string(&mut svg, (CHART_W, 260)).into_drawing_area();
-        root.fill(&WHITE)?;
-        let max_x = history
-            .iter()
-            .map(|p| p.env_steps)
-            .chain(evals.iter().map(|e| e.env_steps))
-            .max()
-            .unwrap_or(1)
-            .max(1) as f64;
-        let mut chart = ChartBuilder::on(&root)
-            .margin(8)
-            .x_label_area_size(28)
-            .y_label_area_size(40)
-            .build_cartesian_2d(0f64..max_x, 0f64..1.02f64)?;
+    svg_chart((CHART_W, 260), |root| {
+        let steps = history.iter().map(|p| p.env_steps);
+        let mut chart = fractions_chart(root, steps.chain(evals.iter().map(|e| e.env_steps)))?;
         chart.configure_mesh().x_desc("env steps").draw()?;
         let series: [Series; 3] = [
             (PROGRESS_LEGEND[0].0, BLUE, |p| p.start_step_frac_avg),
@@ -256,13 +252,8 @@ pub fn progress_svg(history: &[ProgressPoint], evals: &[EvalPoint]) -> String {
             evals.iter().map(|e| (e.env_steps as f64, e.success_at_end)),
             RED.stroke_width(2),
         ))?;
-        root.present()?;
         Ok(())
-    })();
-    match result {
-        Ok(()) => svg,
-        Err(e) => chart_err(e),
-    }
+    })
 }
 
 /// The colour of demo `i` in the per-demo frontier chart and its legend.
@@ -275,27 +266,17 @@ pub fn demo_color(i: usize) -> RGBColor {
 /// line from 0 to `now` env steps (the page prints the legend, [`demo_color`]). A stalled demo's
 /// line is flat at the end while the others climb (docs/ALGORITHM.md 2.10).
 pub fn demo_frontiers_svg(demos: &[DemoBar], now: u64) -> String {
-    let mut svg = String::new();
-    let result = (|| -> Result<(), Box<dyn std::error::Error>> {
-        let root = SVGBackend::with_string(&mut svg, (CHART_W, 240)).into_drawing_area();
-        root.fill(&WHITE)?;
-        let max_x = demos
+    svg_chart((CHART_W, 240), |root| {
+        let steps = demos
             .iter()
-            .flat_map(|d| d.difficulty.frontier.iter().map(|p| p[0]))
-            .chain([now])
-            .max()
-            .unwrap_or(1)
-            .max(1) as f64;
-        let mut chart = ChartBuilder::on(&root)
-            .margin(8)
-            .x_label_area_size(28)
-            .y_label_area_size(40)
-            .build_cartesian_2d(0f64..max_x, 0f64..1.02f64)?;
+            .flat_map(|d| d.difficulty.frontier.iter().map(|p| p[0]));
+        let mut chart = fractions_chart(root, steps.chain([now]))?;
         chart
             .configure_mesh()
             .x_desc("env steps")
             .y_desc("part reached")
             .draw()?;
+        let max_x = chart.x_range().end;
         for (i, d) in demos.iter().enumerate() {
             let last = d.states.saturating_sub(1).max(1) as f64;
             let reached = |t: u64| 1.0 - t as f64 / last;
@@ -310,11 +291,6 @@ pub fn demo_frontiers_svg(demos: &[DemoBar], now: u64) -> String {
             let width = if d.difficulty.stalled { 4 } else { 2 };
             chart.draw_series(LineSeries::new(points, demo_color(i).stroke_width(width)))?;
         }
-        root.present()?;
         Ok(())
-    })();
-    match result {
-        Ok(()) => svg,
-        Err(e) => chart_err(e),
-    }
+    })
 }

@@ -37,6 +37,14 @@ pub fn steps_per_iteration(cfg: &RunConfig) -> u64 {
     u64::from(cfg.env.num_envs) * u64::from(cfg.sac.steps_per_env)
 }
 
+/// What a trainer starts from, fresh or restored from a checkpoint.
+struct Start {
+    sac: Sac,
+    replay: Replay,
+    limiter: UtdLimiter,
+    progress: Progress,
+}
+
 impl Trainer {
     /// A new run: a fresh agent, the demos as the offline buffer (spec 6.2, with
     /// `data_action_scale`, 6.4; none with `train_on_demo_actions: false`, 6.3), an empty online
@@ -63,25 +71,20 @@ impl Trainer {
             u64::from(cfg.sac.grad_updates_per_step),
             cfg.sac.num_seed_steps,
         );
-        let progress = Progress {
-            policy_version: 1,
-            stage: first_stage.stage.number(),
-            stage_epoch: first_stage.epoch,
-            next_checkpoint_at: cfg.sac.save_freq,
-            next_log_at: cfg.sac.log_freq,
-            ..Progress::default()
-        };
-        Self::assemble(
-            cfg,
-            demos,
-            run_dir,
+        let start = Start {
             sac,
             replay,
             limiter,
-            progress,
-            action_scale,
-            None,
-        )
+            progress: Progress {
+                policy_version: 1,
+                stage: first_stage.stage.number(),
+                stage_epoch: first_stage.epoch,
+                next_checkpoint_at: cfg.sac.save_freq,
+                next_log_at: cfg.sac.log_freq,
+                ..Progress::default()
+            },
+        };
+        Self::assemble(cfg, demos, run_dir, start, action_scale, false)
     }
 
     /// Continues the run whose checkpoint `manifest` describes: weights, optimiser states,
@@ -112,32 +115,31 @@ impl Trainer {
             );
         }
         let action_scale = action_scale(&cfg, demos)?;
-        let progress = manifest.progress.clone();
-        Self::assemble(
-            cfg,
-            demos,
-            run_dir,
+        let start = Start {
+            progress: manifest.progress.clone(),
+            sac,
+            replay,
+            limiter,
+        };
+        Self::assemble(cfg, demos, run_dir, start, action_scale, true)
+    }
+
+    /// The trainer of `start`; `resumed`: its metrics files go on from `start`'s env steps.
+    fn assemble(
+        cfg: RunConfig,
+        demos: &DemoSet,
+        run_dir: PathBuf,
+        start: Start,
+        action_scale: Option<Vec<f32>>,
+        resumed: bool,
+    ) -> Result<(Self, PolicyWatch, Arc<LearnerStatus>)> {
+        let Start {
             sac,
             replay,
             limiter,
             progress,
-            action_scale,
-            Some(manifest.progress.env_steps),
-        )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn assemble(
-        cfg: RunConfig,
-        demos: &DemoSet,
-        run_dir: PathBuf,
-        sac: Sac,
-        replay: Replay,
-        limiter: UtdLimiter,
-        progress: Progress,
-        action_scale: Option<Vec<f32>>,
-        resumed_at: Option<u64>,
-    ) -> Result<(Self, PolicyWatch, Arc<LearnerStatus>)> {
+        } = start;
+        let resumed_at = resumed.then_some(progress.env_steps);
         let csv_path = run_dir.join("metrics.csv");
         let csv = MetricsCsv::open(&csv_path, resumed_at).map_err(|source| TrainError::Io {
             what: "opening",

@@ -160,15 +160,37 @@ pub fn success_report(lease: &v1::ResetLease) -> v1::EpisodeReport {
     }
 }
 
-/// A run in `dir/run` served by real processes: synthetic demos, a config (warm-up `seed_steps`,
-/// budget `steps`, `sac_extra` lines), its curriculum server, and a learner started with `flags`
-/// after the usual arguments.
+/// A run in `dir/run` served by real processes: its config, its curriculum server and its
+/// learner.
 pub struct Pair {
     pub config: PathBuf,
+    pub run_dir: PathBuf,
     pub curriculum: Curriculum,
     pub learner: Learner,
 }
 
+impl Pair {
+    /// The run of `config` (written in `dir`) on synthetic demos written in `dir`: its curriculum
+    /// server, and a learner started with `flags` after the usual arguments.
+    pub fn start(dir: &Path, config: PathBuf, flags: &[&str]) -> Pair {
+        let demos = write_demos(dir);
+        let run_dir = dir.join("run");
+        let curriculum = Curriculum::start(&config, &demos, &run_dir);
+        let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
+        let mut args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+        args.extend(flags.iter().map(std::ffi::OsStr::new));
+        let learner = Learner::start(&args);
+        Pair {
+            config,
+            run_dir,
+            curriculum,
+            learner,
+        }
+    }
+}
+
+/// [`Pair::start`] of a config written by [`write_config`] (warm-up `seed_steps`, budget `steps`,
+/// `sac_extra` lines).
 pub fn start_pair(
     dir: &Path,
     seed_steps: u64,
@@ -176,19 +198,19 @@ pub fn start_pair(
     sac_extra: &str,
     flags: &[&str],
 ) -> Pair {
-    let demos = write_demos(dir);
-    let config = write_config(dir, seed_steps, steps, sac_extra);
-    let run_dir = dir.join("run");
-    let curriculum = Curriculum::start(&config, &demos, &run_dir);
-    let args = Learner::args(&config, &curriculum.grpc, &demos, &run_dir);
-    let mut args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    args.extend(flags.iter().map(std::ffi::OsStr::new));
-    let learner = Learner::start(&args);
-    Pair {
-        config,
-        curriculum,
-        learner,
-    }
+    Pair::start(dir, write_config(dir, seed_steps, steps, sac_extra), flags)
+}
+
+/// [`start_pair`] (warm-up `seed_steps`, a budget no test reaches) in `utd_mode: sync` with a
+/// 2-batch ingest queue: data can never run ahead of the updates.
+pub fn start_sync_pair(dir: &Path, seed_steps: u64) -> Pair {
+    start_pair(
+        dir,
+        seed_steps,
+        100_000,
+        "  utd_mode: sync\n",
+        &["--queue-batches", "2"],
+    )
 }
 
 /// A running `learner` child; killed when dropped. Its stderr is kept (`RFCL_TEST_LOGS=1` shows
