@@ -77,7 +77,7 @@ fn generated_demos_load_and_replay_their_success_flags() {
     // without observations.
     let record = dir.path().join("mp");
     succeed(
-        Command::new(rfcl_testkit::binaries::python())
+        Command::new(rfcl_core::python::python_program())
             .args([
                 "-m",
                 "mani_skill.examples.motionplanning.panda.run",

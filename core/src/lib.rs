@@ -9,6 +9,7 @@
 //! * [`final_counters`]: the learner's counters when it stops cleanly (`learner_final.json`).
 //! * [`lease`]: reset leases and episode reports (the curriculum contract).
 //! * [`maze`]: the fixed PointMaze layout (spec 7.5), for the native env and the dashboard.
+//! * [`python`]: the Python interpreter the demo tools run under.
 //! * [`ready`]: a service's ready line, printed once it serves and parsed by whoever started it.
 //! * [`run_state`]: the run's state as the curriculum server tells other processes (`GetState`).
 //! * [`run_lock`]: one owner per run directory and role (a kernel lock held while a process runs).
@@ -24,6 +25,7 @@ pub mod error;
 pub mod final_counters;
 pub mod lease;
 pub mod maze;
+pub mod python;
 pub mod ready;
 pub mod run_lock;
 pub mod run_state;

@@ -29,13 +29,12 @@ use super::{create_parent, path_str};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::demo::{Demo, DemoSet};
+use rfcl_core::python::{python_program, PYTHON_ENV};
 
 /// The control mode the presets train in (spec 7.1).
 pub const CONTROL_MODE: &str = "pd_joint_delta_pos";
 /// ManiSkill's CPU simulation backend.
 pub const SIM_BACKEND: &str = "physx_cpu";
-/// Overrides the Python interpreter (default: the one rfcl was built with, `PYO3_PYTHON`).
-pub const PYTHON_ENV: &str = "RFCL_PYTHON";
 /// Lines of a tool's output kept for an error message.
 const TAIL: usize = 25;
 /// Motion planning rounds before giving up when replays in the target control mode fail.
@@ -57,17 +56,6 @@ pub const MOTION_PLANNED: &[&str] = &[
     "DrawTriangle-v1",
     "DrawSVG-v1",
 ];
-
-/// `$RFCL_PYTHON`, else the venv Python rfcl was built with (`PYO3_PYTHON`), else `python3`.
-pub fn python_program() -> PathBuf {
-    if let Some(p) = std::env::var_os(PYTHON_ENV).filter(|p| !p.is_empty()) {
-        return PathBuf::from(p);
-    }
-    option_env!("PYO3_PYTHON")
-        .map(PathBuf::from)
-        .filter(|p| p.is_file())
-        .unwrap_or_else(|| PathBuf::from("python3"))
-}
 
 /// Starts [`python_program`] with `args` (in `dir` when given), unbuffered, stdin closed, stdout
 /// and stderr piped.

@@ -1,7 +1,7 @@
 //! `rfcl demos generate --env metaworld/<task>` and `rfcl demos convert --suite adroit`: the demo
 //! sources of the MetaWorld and Adroit suites (docs/SUITES.md "Demo files"), written in
 //! Python (`python/rfcl_sim/demos.py`) and run here with the venv's Python
-//! ([`super::sim::python_program`]):
+//! ([`rfcl_core::python::python_program`]):
 //!
 //! * `python -m rfcl_sim.demos metaworld --task T -n N --out OUT --seed S`: MetaWorld's scripted
 //!   policy from seeds S, S+1, ...; the first N successful episodes;
@@ -19,8 +19,9 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rfcl_core::demo::DemoSet;
 
-use super::sim::{python_program, spawn_python};
+use super::sim::spawn_python;
 use super::{create_parent, path_str};
+use rfcl_core::python::python_program;
 
 /// `--env` prefix of MetaWorld tasks.
 pub const METAWORLD_PREFIX: &str = "metaworld/";

@@ -91,15 +91,6 @@ pub fn service_binary(package: &str, bin: &str) -> PathBuf {
     }
 }
 
-/// The Python the simulator tools run under, picked as `rfcl` picks it: `$RFCL_PYTHON`, else the
-/// venv Python the build used (`PYO3_PYTHON`), else `python3`.
-pub fn python() -> String {
-    std::env::var("RFCL_PYTHON")
-        .ok()
-        .or_else(|| option_env!("PYO3_PYTHON").map(str::to_owned))
-        .unwrap_or_else(|| "python3".into())
-}
-
 /// The workspace root (this crate's parent directory).
 pub fn workspace_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -95,7 +95,7 @@ pub fn write_demo_set(set: &DemoSet, path: &Path) {
 /// that succeed, `closed` that do not, `steps` steps each.
 pub fn write_d4rl_door(path: &Path, open: u32, closed: u32, steps: u32) {
     crate::child::succeed(
-        std::process::Command::new(crate::binaries::python())
+        std::process::Command::new(rfcl_core::python::python_program())
             .arg(crate::binaries::workspace_root().join("tests/adroit_d4rl.py"))
             .arg(path)
             .args([open, closed, steps].map(|n| n.to_string())),
