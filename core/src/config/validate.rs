@@ -174,7 +174,7 @@ impl RunConfig {
             },
         )?;
         within("sac.discount", sac.discount, UNIT)?;
-        within("sac.tau", sac.tau, Interval(Excluded(0.0), Included(1.0)))?;
+        within("sac.tau", sac.tau, SHARE)?;
         within("sac.initial_temperature", sac.initial_temperature, POSITIVE)?;
         within_opt("sac.target_entropy", sac.target_entropy, REAL)?;
         within("sac.actor_lr", sac.actor_lr, POSITIVE)?;
@@ -312,11 +312,16 @@ impl RunConfig {
                 ));
             }
         }
-        let (hang, success) = (service.hang_timeout_s, service.stop_at_eval_success);
-        let hang_range = Interval(Included(5.0), Included(86_400.0));
-        within_opt("service.hang_timeout_s", hang, hang_range)?;
-        let success_range = Interval(Excluded(0.0), Included(1.0));
-        within_opt("service.stop_at_eval_success", success, success_range)?;
+        within_opt(
+            "service.hang_timeout_s",
+            service.hang_timeout_s,
+            HANG_TIMEOUT_S,
+        )?;
+        within_opt(
+            "service.stop_at_eval_success",
+            service.stop_at_eval_success,
+            SHARE,
+        )?;
         Ok(())
     }
 }
@@ -390,11 +395,7 @@ impl ReverseConfig {
             self.demo_horizon_to_max_steps_ratio,
             REAL,
         )?;
-        within(
-            "reverse.solved_demo_weight",
-            self.solved_demo_weight,
-            Interval(Excluded(0.0), Included(1.0)),
-        )?;
+        within("reverse.solved_demo_weight", self.solved_demo_weight, SHARE)?;
         within(
             "reverse.solved_frac_threshold",
             self.solved_frac_threshold,
@@ -453,6 +454,10 @@ struct Interval(Bound<f64>, Bound<f64>);
 const UNIT: Interval = Interval(Included(0.0), Included(1.0));
 const POSITIVE: Interval = Interval(Excluded(0.0), Unbounded);
 const REAL: Interval = Interval(Unbounded, Unbounded);
+/// (0, 1]: a share that must not be zero.
+const SHARE: Interval = Interval(Excluded(0.0), Included(1.0));
+/// `service.hang_timeout_s`: 5 s to a day.
+const HANG_TIMEOUT_S: Interval = Interval(Included(5.0), Included(86_400.0));
 
 impl Interval {
     fn contains(self, x: f64) -> bool {
