@@ -154,25 +154,26 @@ fn metric(
     e: &mut DescriptorEncoder,
     name: &str,
     help: &str,
-    metric: impl EncodeMetric,
+    value: impl EncodeMetric,
 ) -> std::fmt::Result {
-    metric.encode(e.encode_descriptor(name, help, None, metric.metric_type())?)
+    value.encode(e.encode_descriptor(name, help, None, value.metric_type())?)
 }
 
-/// A family of `metric(value)` with one label; its type is the metric's.
+/// A family of `make(value)` with one label; its type is the metric's (asked of
+/// `make(N::default())`, so that an empty family still has its descriptor).
 fn family<N: Copy + Default, M: EncodeMetric>(
     e: &mut DescriptorEncoder,
     name: &str,
     help: &str,
     label: &str,
     values: &[(&str, N)],
-    metric: impl Fn(N) -> M,
+    make: impl Fn(N) -> M,
 ) -> std::fmt::Result {
-    let kind = metric(N::default()).metric_type();
+    let kind = make(N::default()).metric_type();
     let mut m = e.encode_descriptor(name, help, None, kind)?;
     for (value_of_label, v) in values {
         let labels = [(label, *value_of_label)];
-        metric(*v).encode(m.encode_family(&labels)?)?;
+        make(*v).encode(m.encode_family(&labels)?)?;
     }
     Ok(())
 }
